@@ -1,0 +1,91 @@
+"""The five algorithms as one agent type with different parts (thesis table 4.4).
+
+| algo      | controllers      | networks                       | meta input               |
+|-----------|------------------|--------------------------------|--------------------------|
+| hdrqn-v2  | meta + sub       | LSTM (meta: MLP trunk)         | sub LSTM state (c or h)  |
+| hdrqn-v1  | meta + sub       | LSTM (conv trunks)             | observation image        |
+| hdqn      | meta + sub       | feed-forward (conv trunks)     | observation image        |
+| drqn      | one (flat)       | LSTM                           | -                        |
+| dqn       | one (flat)       | feed-forward                   | -                        |
+
+The sub-controller of a hierarchical agent sees the observation and the subgoal image
+stacked to 6 channels; a flat agent's controller sees the observation (3 channels) and
+learns from the classical reward.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from hdrqn_ros.agents.controller import Controller
+from hdrqn_ros.agents.networks import lstm_state_size, make_image_qnet, make_state_qnet
+from hdrqn_ros.agents.replay import SequenceBatch
+from hdrqn_ros.config import TrainConfig
+
+
+@dataclass(frozen=True)
+class AlgoSpec:
+    hierarchical: bool
+    recurrent: bool
+    meta_input: Literal["image", "state", None]
+
+
+ALGO_SPECS: dict[str, AlgoSpec] = {
+    "hdrqn-v2": AlgoSpec(hierarchical=True, recurrent=True, meta_input="state"),
+    "hdrqn-v1": AlgoSpec(hierarchical=True, recurrent=True, meta_input="image"),
+    "hdqn": AlgoSpec(hierarchical=True, recurrent=False, meta_input="image"),
+    "drqn": AlgoSpec(hierarchical=False, recurrent=True, meta_input=None),
+    "dqn": AlgoSpec(hierarchical=False, recurrent=False, meta_input=None),
+}
+
+
+def stack_subgoal(obs: np.ndarray, subgoal_image: np.ndarray) -> np.ndarray:
+    """Sub-controller input: ``obs`` (..., 44, 44, 3) and the subgoal image broadcast to
+    it, stacked to (..., 44, 44, 6) uint8."""
+    return np.concatenate([obs, np.broadcast_to(subgoal_image, obs.shape)], axis=-1)
+
+
+def _sub_window_input(batch: SequenceBatch) -> np.ndarray:
+    # frames (B, n+1, 44, 44, 3); one subgoal image per window (its option's)
+    return stack_subgoal(batch.frames, batch.segment_data["subgoal_image"][:, None])
+
+
+def _frames(batch: SequenceBatch) -> np.ndarray:
+    return batch.frames
+
+
+class Agent:
+    """The controllers of one algorithm; ``meta`` is ``None`` for the flat baselines."""
+
+    def __init__(self, cfg: TrainConfig, num_actions: int, num_subgoals: int):
+        self.algo = cfg.algo
+        self.spec = spec = ALGO_SPECS[cfg.algo]
+        self.num_actions = num_actions
+        self.num_subgoals = num_subgoals
+        sub_net = make_image_qnet(6 if spec.hierarchical else 3, num_actions, recurrent=spec.recurrent)
+        self.sub = Controller("sub", sub_net, cfg.sub, _sub_window_input if spec.hierarchical else _frames,
+                              device=cfg.device, seed=cfg.seed)
+        self.meta: Controller | None = None
+        if spec.meta_input == "state":
+            meta_net = make_state_qnet(lstm_state_size, num_subgoals, recurrent=True)
+        elif spec.meta_input == "image":
+            meta_net = make_image_qnet(3, num_subgoals, recurrent=spec.recurrent)
+        if spec.hierarchical:
+            self.meta = Controller("meta", meta_net, cfg.meta, _frames, device=cfg.device, seed=cfg.seed + 1)
+
+    @property
+    def controllers(self) -> list[Controller]:
+        return [c for c in (self.meta, self.sub) if c is not None]
+
+    def sub_input(self, obs: np.ndarray, subgoal_images: np.ndarray) -> np.ndarray:
+        """(N, 44, 44, 3) observations -> the sub-controller's (N, 44, 44, 3 or 6) input."""
+        return stack_subgoal(obs, subgoal_images) if self.spec.hierarchical else obs
+
+    def state_dict(self) -> dict:
+        return {c.name: c.state_dict() for c in self.controllers}
+
+    def load_state_dict(self, state: dict) -> None:
+        for c in self.controllers:
+            c.load_state_dict(state[c.name])

@@ -1,0 +1,118 @@
+"""One Q-learning controller: online and target network, Adam, episodic replay, and the
+Double DQN update on bootstrapped random windows (thesis Algorithms 3 and 4).
+
+The whole update is :meth:`Controller.update`; acting is :meth:`Controller.act`.
+"""
+from __future__ import annotations
+
+import copy
+from typing import Callable
+
+import numpy as np
+import torch
+from torch import nn
+
+from hdrqn_ros.agents.replay import EpisodeReplay, SequenceBatch
+from hdrqn_ros.config import ControllerConfig
+
+
+class TrainingDiverged(RuntimeError):
+    """A loss or gradient became NaN or infinite."""
+
+
+InputBuilder = Callable[[SequenceBatch], np.ndarray]
+"""Turns a sampled window into the network input ``(B, n+1, ...)``."""
+
+
+class Controller:
+    """A meta-controller or a sub-controller (or the single controller of DQN/DRQN).
+
+    ``net`` maps ``(B, T, ...)`` inputs to Q-values ``(B, T, n_outputs)``; ``build_input``
+    assembles a sampled window into that input (e.g. observation + subgoal image).
+    Replay fields used: ``action`` (int), ``reward`` (float32), ``terminal`` (bool, no
+    bootstrap) and ``discount`` (float32, gamma or gamma**k).
+    """
+
+    def __init__(self, name: str, net: nn.Module, cfg: ControllerConfig, build_input: InputBuilder,
+                 device: str | torch.device = "cpu", seed: int = 0):
+        self.name = name
+        self.cfg = cfg
+        self.device = torch.device(device)
+        self.online = net.to(self.device)
+        self.target = copy.deepcopy(net).to(self.device).requires_grad_(False)
+        self.optimizer = torch.optim.Adam(self.online.parameters(), lr=cfg.lr)
+        self.replay = EpisodeReplay(cfg.replay_episodes, capacity_bytes=cfg.replay_bytes, seed=seed)
+        self.build_input = build_input
+        self.recurrent = bool(getattr(net, "recurrent", False))
+        # a feed-forward network learns from single transitions (DQN); an LSTM from windows of n
+        self.seq_len = cfg.seq_len if self.recurrent else 1
+        self.updates = 0
+        self._online_params = list(self.online.parameters())
+        self._target_params = list(self.target.parameters())
+
+    @property
+    def n_outputs(self) -> int:
+        return self.online.n_outputs
+
+    def initial_state(self, batch_size: int):
+        return self.online.initial_state(batch_size, self.device)
+
+    @torch.no_grad()
+    def act(self, x: np.ndarray, state):
+        """One step for a batch: ``x`` (B, ...) -> (Q-values (B, n) numpy, new state)."""
+        q, state = self.online.act(torch.as_tensor(x, device=self.device), state)
+        return q.cpu().numpy(), state
+
+    def ready(self) -> bool:
+        """Enough episodes stored to sample a batch."""
+        return len(self.replay) > 0
+
+    def update(self) -> float:
+        """Sample windows, take one Adam step on the Double DQN loss, soft-update the target.
+
+        Loss only on each window's ``loss_mask`` steps (the last n/2). Returns the loss.
+        Raises :class:`TrainingDiverged` when the loss is not finite.
+        """
+        batch = self.replay.sample(self.cfg.batch_size, self.seq_len)
+        x = torch.as_tensor(self.build_input(batch), device=self.device)  # (B, n+1, ...)
+        f = {k: torch.as_tensor(v, device=self.device) for k, v in batch.fields.items()}
+        mask = torch.as_tensor(batch.loss_mask, device=self.device)
+
+        q_all, _ = self.online(x)  # (B, n+1, A)
+        q_taken = q_all[:, :-1].gather(-1, f["action"].long().unsqueeze(-1)).squeeze(-1)
+        with torch.no_grad():
+            q_target_all, _ = self.target(x)
+            next_action = q_all[:, 1:].argmax(-1, keepdim=True)  # Double DQN: online picks
+            next_value = q_target_all[:, 1:].gather(-1, next_action).squeeze(-1)  # target values
+            not_terminal = (~f["terminal"].bool()).float()
+            y = f["reward"].float() + f["discount"].float() * not_terminal * next_value
+        td = q_taken - y
+        per_step = td.pow(2) if self.cfg.loss == "mse" else nn.functional.smooth_l1_loss(q_taken, y, reduction="none")
+        loss = (per_step * mask).sum() / mask.sum().clamp(min=1)
+        if not torch.isfinite(loss):
+            raise TrainingDiverged(f"{self.name} loss is {loss.item()} at update {self.updates}")
+
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if self.cfg.grad_clip is not None:
+            nn.utils.clip_grad_norm_(self._online_params, self.cfg.grad_clip)
+        self.optimizer.step()
+        self.soft_update()
+        self.updates += 1
+        return float(loss.detach())
+
+    @torch.no_grad()
+    def soft_update(self) -> None:
+        """theta' <- tau * theta + (1 - tau) * theta'."""
+        torch._foreach_lerp_(self._target_params, self._online_params, self.cfg.tau)
+
+    def state_dict(self) -> dict:
+        return {"online": self.online.state_dict(), "target": self.target.state_dict(),
+                "optimizer": self.optimizer.state_dict(), "updates": self.updates}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.online.load_state_dict(state["online"])
+        self.target.load_state_dict(state["target"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.updates = int(state["updates"])
+

@@ -1,0 +1,323 @@
+"""Episodic experience replay for Bootstrapped Random Updates (thesis section 3.4).
+
+The replay holds whole episodes. A minibatch picks ``batch_size`` episodes uniformly at
+random (with replacement); in each it picks a segment with probability proportional to
+the segment's length (i.e. a uniformly random step's segment), then a random window of
+``min(seq_len, segment_length)`` consecutive steps inside that segment. Training starts
+every window from a zero LSTM state and puts the loss only on the window's last steps
+(``loss_mask``; the DRQN trick of thesis 3.4: the last ``n/2`` transitions).
+
+Segments are options: the sub-controller's LSTM restarts at every option, so its windows
+must never cross an option boundary. Flat and meta-controller replays store one segment
+per episode (``segment_starts=[0]``).
+
+Storage layout of one episode of ``T`` steps and ``K`` segments:
+
+* ``frames``: ``(T + 1, ...)`` the inputs ``o_0 .. o_T``; frame ``t + 1`` is the next
+  input of step ``t``, so next observations are not stored twice.
+* ``fields``: name -> ``(T, ...)`` per-step arrays (action, reward, terminal, ...).
+* ``segment_starts``: ``(K,)`` int32, strictly increasing, starting at 0.
+* ``segment_data``: name -> ``(K, ...)`` per-segment arrays (e.g. the option's subgoal
+  image, stored once per option rather than once per step).
+
+Memory (gridworld sub-controller replay, thesis table 4.7: 5000 episodes)
+-------------------------------------------------------------------------
+Per stored step: one 44x44x3 uint8 frame = 5808 B, plus compact fields, e.g. action
+``uint8`` (1 B), intrinsic reward ``float32`` (4 B), terminal ``bool`` (1 B), discount
+``float32`` (4 B) = 10 B, i.e. 5818 B a step. Per episode: one extra frame (``o_T``,
+5808 B) and per option its subgoal image (5808 B) plus its int32 start (4 B).
+
+5000 episodes x 50 steps = 250,000 steps:
+
+* steps:        250,000 x 5818 B = 1,454,500,000 B
+* last frames:    5,000 x 5808 B =    29,040,000 B
+* options: K per episode, 5,000 x K x 5812 B = K x 29,060,000 B
+
+With K = 10 options an episode that is 1,774,140,000 B = 1.65 GiB <= 2 GiB; the 2 GiB
+bound holds up to ~22 options per episode on average (an unbounded flat replay of 6-channel
+stacked frames would need 11.6 KB a step, 2.9 GB). ``nbytes`` counts array data only;
+the Python objects add roughly 1-2 KB per episode (~10 MB for 5000 episodes). Use
+``capacity_bytes`` to enforce a hard bound in addition to ``capacity_episodes``.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Dict, Optional
+
+import numpy as np
+
+__all__ = ["Episode", "EpisodeReplay", "SequenceBatch"]
+
+
+def _owned(a: np.ndarray) -> np.ndarray:
+    """A C-contiguous array owning its memory (so ``nbytes`` is what is really held)."""
+    a = np.asarray(a)
+    if a.base is not None or not a.flags.c_contiguous:
+        a = np.array(a, order="C", copy=True)
+    return a
+
+
+@dataclass
+class Episode:
+    """One stored episode; see the module docstring for the layout.
+
+    Arrays are converted with ``np.asarray`` (dtypes are kept: choose compact ones).
+    """
+
+    frames: np.ndarray
+    fields: Dict[str, np.ndarray] = field(default_factory=dict)
+    segment_starts: Optional[np.ndarray] = None
+    segment_data: Dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.frames = np.asarray(self.frames)
+        if self.frames.ndim < 1 or self.frames.shape[0] < 2:
+            raise ValueError(
+                "Episode.frames must be (T + 1, ...) with T >= 1 steps, "
+                f"got shape {self.frames.shape}"
+            )
+        t = self.num_steps
+        if not isinstance(self.fields, dict):
+            raise ValueError("Episode.fields must be a dict name -> (T, ...) array")
+        fields = {}
+        for name, arr in self.fields.items():
+            arr = np.asarray(arr)
+            if arr.ndim < 1 or arr.shape[0] != t:
+                raise ValueError(
+                    f"Episode.fields[{name!r}] must have T = {t} rows (frames has T + 1 = "
+                    f"{t + 1}), got shape {arr.shape}"
+                )
+            fields[name] = arr
+        self.fields = fields
+
+        if self.segment_starts is None:
+            starts = np.zeros(1, dtype=np.int32)
+        else:
+            raw = np.asarray(self.segment_starts)
+            if raw.ndim != 1 or raw.size == 0 or not np.issubdtype(raw.dtype, np.integer):
+                raise ValueError(
+                    f"Episode.segment_starts must be a non-empty 1-D integer array, got "
+                    f"{raw.dtype} of shape {raw.shape}"
+                )
+            starts = raw.astype(np.int32)
+            if starts[0] != 0:
+                raise ValueError(f"Episode.segment_starts must start at 0, got {starts[0]}")
+            if np.any(np.diff(starts) <= 0):
+                raise ValueError(f"Episode.segment_starts must strictly increase: {starts}")
+            if starts[-1] >= t:
+                raise ValueError(
+                    f"Episode.segment_starts must be < T = {t} (no empty segment), got {starts}"
+                )
+        self.segment_starts = starts
+
+        if not isinstance(self.segment_data, dict):
+            raise ValueError("Episode.segment_data must be a dict name -> (K, ...) array")
+        k = starts.shape[0]
+        seg = {}
+        for name, arr in self.segment_data.items():
+            arr = np.asarray(arr)
+            if arr.ndim < 1 or arr.shape[0] != k:
+                raise ValueError(
+                    f"Episode.segment_data[{name!r}] must have K = {k} rows (one per "
+                    f"segment), got shape {arr.shape}"
+                )
+            seg[name] = arr
+        self.segment_data = seg
+
+    @property
+    def num_steps(self) -> int:
+        return int(self.frames.shape[0] - 1)
+
+    @property
+    def num_segments(self) -> int:
+        return int(self.segment_starts.shape[0])
+
+    @property
+    def segment_lengths(self) -> np.ndarray:
+        """(K,) int: steps in each segment."""
+        return np.diff(np.append(self.segment_starts, self.num_steps))
+
+    @property
+    def nbytes(self) -> int:
+        n = self.frames.nbytes + self.segment_starts.nbytes
+        n += sum(a.nbytes for a in self.fields.values())
+        n += sum(a.nbytes for a in self.segment_data.values())
+        return int(n)
+
+    def _signature(self):
+        def sig(a):
+            return (a.shape[1:], a.dtype.str)
+
+        return (
+            sig(self.frames),
+            tuple(sorted((k, sig(a)) for k, a in self.fields.items())),
+            tuple(sorted((k, sig(a)) for k, a in self.segment_data.items())),
+        )
+
+
+@dataclass
+class SequenceBatch:
+    """A minibatch of ``B`` windows of ``n = seq_len`` steps.
+
+    * ``frames``: ``(B, n + 1, ...)``: the window's inputs plus the next input of its last
+      step, so ``frames[:, t]`` / ``frames[:, t + 1]`` are the input / next input of step t.
+    * ``fields``: name -> ``(B, n, ...)``.
+    * ``segment_data``: name -> ``(B, ...)``: the data of the window's segment.
+    * ``valid``: ``(B, n)`` bool; a window shorter than ``n`` (short segment) fills its
+      first steps and is right-padded with zeros (frames after its last next-input too).
+    * ``loss_mask``: ``(B, n)`` bool: the last ``loss_len`` valid steps of each window.
+    * ``episode_index``, ``start``: ``(B,)`` int: where each window came from (replay slot
+      at sampling time, and first step within the episode), for debugging and tests.
+    """
+
+    frames: np.ndarray
+    fields: Dict[str, np.ndarray]
+    segment_data: Dict[str, np.ndarray]
+    valid: np.ndarray
+    loss_mask: np.ndarray
+    episode_index: np.ndarray
+    start: np.ndarray
+
+    @property
+    def lengths(self) -> np.ndarray:
+        return self.valid.sum(axis=1)
+
+
+class EpisodeReplay:
+    """Ring buffer of whole episodes, bounded in episodes and optionally in bytes.
+
+    When either bound is exceeded after an ``add``, the oldest episodes are dropped.
+    """
+
+    def __init__(
+        self,
+        capacity_episodes: int,
+        seed: Optional[int] = None,
+        capacity_bytes: Optional[int] = None,
+    ):
+        if int(capacity_episodes) < 1:
+            raise ValueError(f"capacity_episodes must be >= 1, got {capacity_episodes}")
+        if capacity_bytes is not None and int(capacity_bytes) < 1:
+            raise ValueError(f"capacity_bytes must be >= 1 or None, got {capacity_bytes}")
+        self.capacity_episodes = int(capacity_episodes)
+        self.capacity_bytes = None if capacity_bytes is None else int(capacity_bytes)
+        self._episodes: deque = deque()
+        self._nbytes = 0
+        self._num_steps = 0
+        self._signature = None
+        self._rng = np.random.default_rng(seed)
+
+    def __len__(self) -> int:
+        return len(self._episodes)
+
+    @property
+    def num_steps(self) -> int:
+        return self._num_steps
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of array data held (frames, fields, segment starts and data)."""
+        return self._nbytes
+
+    def __getitem__(self, i: int) -> Episode:
+        return self._episodes[i]
+
+    def clear(self) -> None:
+        self._episodes.clear()
+        self._nbytes = 0
+        self._num_steps = 0
+        self._signature = None
+
+    def add(self, episode: Episode) -> None:
+        """Store ``episode`` (arrays that are views are copied so that the replay never
+        pins a larger buffer), then drop the oldest episodes beyond the capacities."""
+        if not isinstance(episode, Episode):
+            raise ValueError(f"add() expects an Episode, got {type(episode).__name__}")
+        sig = episode._signature()
+        if self._signature is not None and sig != self._signature and len(self) > 0:
+            raise ValueError(
+                "episode layout (frame shape/dtype, field or segment_data names, shapes, "
+                f"dtypes) differs from the episodes already stored: {sig} != {self._signature}"
+            )
+        ep = Episode(
+            frames=_owned(episode.frames),
+            fields={k: _owned(v) for k, v in episode.fields.items()},
+            segment_starts=_owned(episode.segment_starts),
+            segment_data={k: _owned(v) for k, v in episode.segment_data.items()},
+        )
+        nb = ep.nbytes
+        if self.capacity_bytes is not None and nb > self.capacity_bytes:
+            raise ValueError(
+                f"episode of {nb} bytes exceeds capacity_bytes = {self.capacity_bytes}"
+            )
+        self._signature = sig
+        self._episodes.append(ep)
+        self._nbytes += nb
+        self._num_steps += ep.num_steps
+        while len(self._episodes) > self.capacity_episodes or (
+            self.capacity_bytes is not None and self._nbytes > self.capacity_bytes
+        ):
+            old = self._episodes.popleft()
+            self._nbytes -= old.nbytes
+            self._num_steps -= old.num_steps
+
+    def sample(
+        self,
+        batch_size: int,
+        seq_len: int,
+        rng: Optional[np.random.Generator] = None,
+        loss_len: Optional[int] = None,
+    ) -> SequenceBatch:
+        """Sample ``batch_size`` windows of up to ``seq_len`` steps (see module docstring).
+
+        ``loss_len`` (default ``max(1, seq_len // 2)``): how many of the last valid steps
+        of each window carry the loss (all of them when the window is shorter).
+        ``rng`` defaults to the replay's own generator (seeded by ``seed``).
+        """
+        if len(self._episodes) == 0:
+            raise ValueError("cannot sample from an empty replay")
+        if int(batch_size) < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        if int(seq_len) < 1:
+            raise ValueError(f"seq_len must be >= 1, got {seq_len}")
+        batch_size, n = int(batch_size), int(seq_len)
+        if loss_len is None:
+            loss_len = max(1, n // 2)
+        if int(loss_len) < 1:
+            raise ValueError(f"loss_len must be >= 1, got {loss_len}")
+        rng = self._rng if rng is None else rng
+
+        first = self._episodes[0]
+        frames = np.zeros((batch_size, n + 1) + first.frames.shape[1:], first.frames.dtype)
+        fields = {
+            k: np.zeros((batch_size, n) + a.shape[1:], a.dtype) for k, a in first.fields.items()
+        }
+        seg_data = {
+            k: np.zeros((batch_size,) + a.shape[1:], a.dtype)
+            for k, a in first.segment_data.items()
+        }
+        valid = np.zeros((batch_size, n), bool)
+        loss_mask = np.zeros((batch_size, n), bool)
+        ep_idx = rng.integers(len(self._episodes), size=batch_size)
+        starts = np.zeros(batch_size, np.int64)
+
+        for b, e in enumerate(ep_idx):
+            ep = self._episodes[int(e)]
+            t_total = ep.num_steps
+            # A uniformly random step picks its segment with probability ∝ length.
+            k = int(np.searchsorted(ep.segment_starts, rng.integers(t_total), side="right")) - 1
+            seg_start = int(ep.segment_starts[k])
+            seg_end = int(ep.segment_starts[k + 1]) if k + 1 < ep.num_segments else t_total
+            w = min(n, seg_end - seg_start)
+            s = seg_start + int(rng.integers(seg_end - seg_start - w + 1))
+            starts[b] = s
+            frames[b, : w + 1] = ep.frames[s : s + w + 1]
+            for name, a in ep.fields.items():
+                fields[name][b, :w] = a[s : s + w]
+            for name, a in ep.segment_data.items():
+                seg_data[name][b] = a[k]
+            valid[b, :w] = True
+            loss_mask[b, max(0, w - int(loss_len)) : w] = True
+
+        return SequenceBatch(frames, fields, seg_data, valid, loss_mask, ep_idx, starts)

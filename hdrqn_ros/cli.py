@@ -1,0 +1,187 @@
+"""The ``hdrqn`` command: train, evaluate, plot, and look at the environments.
+
+Exit codes: 0 success, 1 a run failed (e.g. diverged), 2 misuse (bad arguments, config,
+checkpoint or file), 130 interrupted.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+from hdrqn_ros import __version__
+
+EPILOG = """examples:
+  hdrqn train --algo hdrqn-v2 --env hdrqn/GridWorld-2Goals-v0 --episodes 2000 --out runs/v2
+  hdrqn train --config config/exp3_gridworld_2goals.yaml --algo hdqn --seed 1 --out runs/hdqn-s1
+  hdrqn eval --checkpoint runs/v2/checkpoints/last.pt --episodes 200
+  hdrqn plot runs/v2 runs/hdqn-s1 --out curves.png
+  hdrqn envs
+"""
+
+
+class UsageError(Exception):
+    """Misuse of the command line: printed without a traceback, exit code 2."""
+
+
+def _add_train(sub) -> None:
+    from hdrqn_ros.config import ALGOS
+    from hdrqn_ros.envs.registration import ENV_IDS
+
+    p = sub.add_parser("train", help="train an agent in-process on N vectorised environments",
+                       description="Train hDRQNv1/v2 or a baseline (thesis Algorithm 1). RUN_DIR receives "
+                                   "checkpoints/, train.csv, eval.csv, tb/ (TensorBoard), curves.png and summary.json.")
+    p.add_argument("--algo", choices=ALGOS, help="algorithm (default hdrqn-v2)")
+    p.add_argument("--env", choices=ENV_IDS, metavar="ENV_ID", help=f"environment id, one of: {', '.join(ENV_IDS)}")
+    p.add_argument("--episodes", type=int, help="training episodes (default 10000)")
+    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory")
+    p.add_argument("--config", action="append", default=[], metavar="FILE",
+                   help="YAML config (repeatable; later files override earlier ones; flags override files)")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--num-envs", type=int, help="environments stepped together (default 16)")
+    p.add_argument("--view", help="observation window: 3, 5, 11 or full (gridworld domains)")
+    p.add_argument("--device", help="torch device, e.g. cpu or cuda")
+    p.add_argument("--eval-every", type=int, help="episodes between greedy evaluations (0: never)")
+    p.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _add_eval(sub) -> None:
+    p = sub.add_parser("eval", help="run greedy evaluation episodes of a checkpoint")
+    p.add_argument("--checkpoint", required=True, help="path to a checkpoint (RUN_DIR/checkpoints/last.pt)")
+    p.add_argument("--episodes", type=int, default=100)
+    p.add_argument("--seed", type=int, default=12345)
+
+
+def _add_plot(sub) -> None:
+    p = sub.add_parser("plot", help="draw learning curves of runs (thesis figures 4.6-4.11) to PNG",
+                       description="Runs with the same label (default: the algorithm) are averaged: mean "
+                                   "line and min-max band over seeds.")
+    p.add_argument("runs", nargs="+", metavar="RUN_DIR")
+    p.add_argument("--out", default="curves.png", help="output PNG")
+    p.add_argument("--window", type=int, default=200, help="moving-average window in episodes")
+    p.add_argument("--label", action="append", default=[], metavar="RUN_DIR=LABEL",
+                   help="name a run's curve (default: its algorithm)")
+
+
+def _add_envs(sub) -> None:
+    sub.add_parser("envs", help="list the environment ids and their spaces")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="hdrqn", formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG,
+        description="Hierarchical deep recurrent Q-learning (hDRQN) on partially observable hierarchical tasks.")
+    parser.add_argument("--version", action="version", version=f"hdrqn_ros {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for add in (_add_train, _add_eval, _add_plot, _add_envs):
+        add(sub)
+    return parser
+
+
+# -- commands -----------------------------------------------------------------------------
+def cmd_train(args) -> int:
+    from hdrqn_ros.config import build_config
+    from hdrqn_ros.training.plots import plot_runs
+    from hdrqn_ros.training.trainer import Trainer
+
+    env_kwargs = None
+    if args.view is not None:
+        env_kwargs = {"view": args.view if args.view == "full" else _int(args.view, "--view")}
+    run_dir = Path(args.out)
+    files = list(args.config)
+    if args.resume and not files and (run_dir / "config.yaml").exists():
+        files = [run_dir / "config.yaml"]
+    cfg = build_config(files, algo=args.algo, env=args.env, episodes=args.episodes, seed=args.seed,
+                       num_envs=args.num_envs, device=args.device, eval_every=args.eval_every)
+    if env_kwargs:
+        cfg.env_kwargs = {**cfg.env_kwargs, **env_kwargs}
+    print(f"training {cfg.algo} on {cfg.env} {cfg.env_kwargs} for {cfg.episodes} episodes "
+          f"({cfg.num_envs} envs, seed {cfg.seed}) -> {run_dir}", file=sys.stderr)
+    trainer = Trainer(cfg, run_dir, resume=args.resume, progress=not args.no_progress)
+    summary = trainer.run()
+    plot_runs([run_dir], run_dir / "curves.png")
+    ev = summary.get("final_eval") or {}
+    print(f"done: {summary['episodes']} episodes, {summary['env_steps']} env steps in {summary['wall_s']} s "
+          f"({summary['env_steps_per_s']} steps/s); greedy eval: success {ev.get('success', float('nan')):.2f}, "
+          f"steps {ev.get('steps', float('nan')):.1f}, reward {ev.get('reward', float('nan')):.2f}; "
+          f"curves: {run_dir / 'curves.png'}")
+    return 0
+
+
+def cmd_eval(args) -> int:
+    from hdrqn_ros.config import TrainConfig
+    from hdrqn_ros.training.checkpoint import load_checkpoint
+    from hdrqn_ros.training.trainer import build_agent, evaluate
+
+    if args.episodes < 1:
+        raise UsageError(f"--episodes must be >= 1, got {args.episodes}")
+    payload = load_checkpoint(args.checkpoint)
+    cfg = TrainConfig.model_validate({**payload["config"], "device": "cpu"})
+    agent = build_agent(cfg)
+    agent.load_state_dict(payload["agent"])
+    result = evaluate(agent, cfg, args.episodes, args.seed)
+    print(json.dumps({"algo": cfg.algo, "env": cfg.env, **result}, indent=2))
+    return 0
+
+
+def cmd_plot(args) -> int:
+    from hdrqn_ros.training.plots import plot_runs
+
+    labels = {}
+    for item in args.label:
+        run, sep, label = item.partition("=")
+        if not sep:
+            raise UsageError(f"--label must be RUN_DIR=LABEL, got {item!r}")
+        labels[str(Path(run))] = label
+    out = plot_runs([Path(r) for r in args.runs], Path(args.out), window=args.window, labels=labels)
+    print(out)
+    return 0
+
+
+def cmd_envs(args) -> int:
+    import gymnasium as gym
+
+    from hdrqn_ros.envs.registration import ENV_IDS
+
+    for env_id in ENV_IDS:
+        spec = gym.spec(env_id)
+        print(f"{env_id:32s} {spec.kwargs}")
+    return 0
+
+
+def _int(text: str, flag: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise UsageError(f"{flag} must be an integer or 'full', got {text!r}") from None
+
+
+COMMANDS = {"train": cmd_train, "eval": cmd_eval, "plot": cmd_plot, "envs": cmd_envs}
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from hdrqn_ros.agents.controller import TrainingDiverged
+    from hdrqn_ros.config import ConfigError
+    from hdrqn_ros.training.checkpoint import CheckpointError
+
+    try:
+        return COMMANDS[args.command](args)
+    except (UsageError, ConfigError, CheckpointError, ValueError, FileNotFoundError) as exc:
+        if os.environ.get("HDRQN_DEBUG"):
+            raise
+        print(f"hdrqn {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except TrainingDiverged as exc:
+        print(f"hdrqn {args.command}: training diverged: {exc}; the last good checkpoint is kept", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"hdrqn {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

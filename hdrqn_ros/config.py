@@ -1,0 +1,133 @@
+"""Training configuration: thesis Table 4.7 defaults, validated with pydantic.
+
+A YAML file given with ``--config`` is checked against these models: an unknown key or a
+wrong type is a :class:`ConfigError` naming the key.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+ALGOS = ("hdrqn-v2", "hdrqn-v1", "hdqn", "drqn", "dqn")
+Algo = Literal["hdrqn-v2", "hdrqn-v1", "hdqn", "drqn", "dqn"]
+
+
+class ConfigError(ValueError):
+    """A configuration file or override is invalid; the message names the problem."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class EpsilonSchedule(_Strict):
+    """Linear annealing from ``start`` to ``end`` over ``steps`` env steps (after warm-up)."""
+
+    start: float = Field(1.0, ge=0.0, le=1.0)
+    end: float = Field(0.1, ge=0.0, le=1.0)
+    steps: int = Field(50_000, ge=1)
+
+    def value(self, step: int) -> float:
+        frac = min(max(step, 0) / self.steps, 1.0)
+        return self.start + frac * (self.end - self.start)
+
+
+class ControllerConfig(_Strict):
+    """Hyper-parameters of one controller (thesis Table 4.7)."""
+
+    lr: float = Field(1e-4, gt=0.0)
+    gamma: float = Field(0.99, ge=0.0, le=1.0)
+    tau: float = Field(0.001, gt=0.0, le=1.0)
+    batch_size: int = Field(4, ge=1)
+    seq_len: int = Field(8, ge=1, description="n: length of the sampled windows")
+    replay_episodes: int = Field(5000, ge=1)
+    replay_bytes: int | None = Field(None, ge=1, description="optional bound on replay memory")
+    loss: Literal["mse", "huber"] = "mse"
+    grad_clip: float | None = Field(10.0, gt=0.0)
+    epsilon: EpsilonSchedule = EpsilonSchedule()
+
+
+def _sub_defaults() -> ControllerConfig:
+    return ControllerConfig(batch_size=4, seq_len=8, replay_episodes=5000,
+                            epsilon=EpsilonSchedule(start=1.0, end=0.1, steps=50_000))
+
+
+def _meta_defaults() -> ControllerConfig:
+    return ControllerConfig(batch_size=12, seq_len=2, replay_episodes=1000, lr=1e-3,
+                            epsilon=EpsilonSchedule(start=1.0, end=0.05, steps=50_000))
+
+
+class TrainConfig(_Strict):
+    """Everything one training run needs. Units: env steps unless stated."""
+
+    algo: Algo = "hdrqn-v2"
+    env: str = "hdrqn/GridWorld-2Goals-v0"
+    env_kwargs: dict[str, Any] = Field(default_factory=lambda: {"view": 5})
+    episodes: int = Field(10_000, ge=1, description="training episodes")
+    num_envs: int = Field(16, ge=1, description="environments stepped together")
+    seed: int = 0
+    device: str = "cpu"
+    update_every: int = Field(5, ge=1, description="env steps per update of each controller")
+    learning_starts: int = Field(10_000, ge=0, description="random-policy env steps before updates")
+    sub_only_episodes: int = Field(0, ge=0, description="phase 1 of two-phase training: meta acts randomly and is not trained")
+    meta_state: Literal["c", "h"] = Field("c", description="hDRQNv2 meta input: sub LSTM cell (c) or hidden (h) state")
+    smdp_discount: bool = Field(False, description="meta target uses gamma**k for a k-step option (eq. 3.5) instead of gamma")
+    eval_every: int = Field(500, ge=0, description="episodes between greedy evaluations (0: never)")
+    eval_episodes: int = Field(100, ge=1)
+    checkpoint_every: int = Field(1000, ge=1, description="episodes between checkpoints")
+    torch_threads: int | None = Field(None, ge=1)
+    sub: ControllerConfig = Field(default_factory=_sub_defaults)
+    meta: ControllerConfig = Field(default_factory=_meta_defaults)
+
+    @model_validator(mode="after")
+    def _check(self) -> "TrainConfig":
+        from hdrqn_ros.envs.registration import ENV_IDS
+
+        if self.env not in ENV_IDS:
+            raise ValueError(f"unknown env {self.env!r}; known: {', '.join(ENV_IDS)}")
+        return self
+
+
+def _merge(base: dict, override: dict) -> dict:
+    out = dict(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def build_config(files: list[str | Path] = (), **overrides: Any) -> TrainConfig:
+    """Defaults, then each YAML file in order, then ``overrides`` (``None`` values skipped).
+
+    Raises :class:`ConfigError` naming the file and the bad key or value.
+    """
+    data: dict[str, Any] = {}
+    for file in files:
+        path = Path(file)
+        try:
+            loaded = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+        except OSError as exc:
+            raise ConfigError(f"cannot read config {path}: {exc.strerror or exc}") from None
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path} is not valid YAML: {exc}") from None
+        if not isinstance(loaded, dict):
+            raise ConfigError(f"{path}: top level must be a mapping, got {type(loaded).__name__}")
+        loaded.pop("description", None)
+        data = _merge(data, loaded)
+    data = _merge(data, {k: v for k, v in overrides.items() if v is not None})
+    try:
+        return TrainConfig.model_validate(data)
+    except ValidationError as exc:
+        where = f" in {', '.join(map(str, files))}" if files else ""
+        lines = []
+        for err in exc.errors():
+            loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
+            got = repr(err.get("input"))
+            got = got if len(got) <= 80 else got[:77] + "..."
+            lines.append(f"  {loc}: {err['msg']} (got {got})")
+        raise ConfigError(f"invalid configuration{where}:\n" + "\n".join(lines)) from None

@@ -1,0 +1,57 @@
+"""The internal critic (thesis section 3.6): intrinsic reward and subgoal termination.
+
+It is a pure function of what the environment reports about the agent
+(:class:`~hdrqn_ros.envs.domain.StepBatch`) and the subgoal each environment's option is
+pursuing. The ``critic`` node wraps the same object.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hdrqn_ros.envs.domain import StepBatch
+
+
+@dataclass
+class CriticResult:
+    intrinsic: np.ndarray  # (N,) float32 intrinsic reward
+    reached: np.ndarray  # (N,) bool, the option's subgoal was achieved at this step
+    option_done: np.ndarray  # (N,) bool, the option ends (reached, life lost or episode over)
+
+
+@dataclass(frozen=True)
+class InternalCritic:
+    """Domain-aware intrinsic reward.
+
+    ``goal_reward`` is given for achieving the option's subgoal; ``wrong_subgoal_penalty``
+    for achieving another subgoal (the option goes on); ``obstacle_penalty`` for hitting an
+    obstacle (the option goes on). Gridworld and four-rooms use (1, -1, -1) (eq. 4.1);
+    Montezuma's Revenge uses (1, 0, 0) (eq. 4.4) and ends the option on a life loss.
+    """
+
+    goal_reward: float = 1.0
+    wrong_subgoal_penalty: float = -1.0
+    obstacle_penalty: float = -1.0
+    life_loss_ends_option: bool = False
+
+    def evaluate(self, step: StepBatch, subgoals: np.ndarray) -> CriticResult:
+        """``subgoals``: (N,) int, the subgoal of each environment's current option."""
+        subgoals = np.asarray(subgoals).reshape(-1)
+        if subgoals.shape != step.at_subgoal.shape:
+            raise ValueError(f"subgoals must have shape {step.at_subgoal.shape}, got {subgoals.shape}")
+        reached = step.at_subgoal == subgoals
+        other = (step.at_subgoal >= 0) & ~reached
+        intrinsic = np.where(reached, self.goal_reward, 0.0)
+        intrinsic += np.where(other, self.wrong_subgoal_penalty, 0.0)
+        intrinsic += np.where(step.hit_obstacle, self.obstacle_penalty, 0.0)
+        option_done = reached | step.done
+        if self.life_loss_ends_option:
+            option_done |= step.life_lost
+        return CriticResult(intrinsic.astype(np.float32), reached, option_done)
+
+
+GRID_CRITIC = InternalCritic(1.0, -1.0, -1.0, life_loss_ends_option=False)
+"""Eq. 4.1: +1 for the subgoal, -1 for another goal or an obstacle."""
+MONTEZUMA_CRITIC = InternalCritic(1.0, 0.0, 0.0, life_loss_ends_option=True)
+"""Eq. 4.4: +1 for reaching the subgoal's box, 0 otherwise; a life loss ends the option."""

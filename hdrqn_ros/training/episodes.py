@@ -1,0 +1,112 @@
+"""Turn the per-step records of N environments into whole replay episodes and statistics.
+
+Sub-controller episode: frames o_0..o_T (T+1 observations, each stored once); fields
+``action, reward (intrinsic, or classical for flat agents), terminal, discount``; one
+segment per option with its subgoal image (windows never cross an option boundary).
+Meta-controller episode: one step per option; frames are the meta inputs at each decision
+plus the input after the last option; ``reward`` is the option's summed extrinsic reward.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hdrqn_ros.agents.replay import Episode
+from hdrqn_ros.training.rollout import StepRecord
+
+
+@dataclass
+class EpisodeStats:
+    """Totals of one finished episode."""
+
+    steps: int
+    classical: float
+    extrinsic: float
+    intrinsic: float
+    success: bool
+    options: int
+
+
+@dataclass
+class _Open:
+    """One environment's episode in progress."""
+
+    obs: list = field(default_factory=list)
+    action: list = field(default_factory=list)
+    reward: list = field(default_factory=list)
+    terminal: list = field(default_factory=list)
+    segment_starts: list = field(default_factory=list)
+    segment_images: list = field(default_factory=list)
+    meta_frames: list = field(default_factory=list)
+    meta_action: list = field(default_factory=list)
+    meta_reward: list = field(default_factory=list)
+    meta_terminal: list = field(default_factory=list)
+    meta_discount: list = field(default_factory=list)
+    classical: float = 0.0
+    extrinsic: float = 0.0
+    intrinsic: float = 0.0
+
+
+class EpisodeRecorder:
+    """Collects :class:`StepRecord` rows per environment; :meth:`add` returns the finished
+    episodes as ``(env index, sub Episode, meta Episode or None, EpisodeStats)``."""
+
+    def __init__(self, num_envs: int, hierarchical: bool, sub_gamma: float, meta_gamma: float,
+                 smdp_discount: bool = False):
+        self.hierarchical = hierarchical
+        self.sub_gamma = np.float32(sub_gamma)
+        self.meta_gamma = meta_gamma
+        self.smdp_discount = smdp_discount
+        self.open = [_Open() for _ in range(num_envs)]
+
+    def add(self, rec: StepRecord) -> list[tuple[int, Episode, Episode | None, EpisodeStats]]:
+        finished = []
+        env = rec.env
+        reward = rec.intrinsic if self.hierarchical else env.classical
+        for i, ep in enumerate(self.open):
+            if rec.new_option[i] or not ep.obs:
+                ep.segment_starts.append(len(ep.obs))
+                if self.hierarchical:
+                    ep.segment_images.append(rec.subgoal_image[i].copy())
+                    ep.meta_frames.append(rec.meta_input[i].copy())
+            ep.obs.append(rec.obs[i].copy())
+            ep.action.append(rec.action[i])
+            ep.reward.append(reward[i])
+            ep.terminal.append(rec.sub_terminal[i])
+            ep.classical += float(env.classical[i])
+            ep.extrinsic += float(env.extrinsic[i])
+            ep.intrinsic += float(rec.intrinsic[i])
+            if self.hierarchical and rec.option_done[i]:
+                k = int(rec.option_steps[i])
+                ep.meta_action.append(rec.subgoal[i])
+                ep.meta_reward.append(rec.option_extrinsic[i])
+                ep.meta_terminal.append(env.terminated[i])
+                ep.meta_discount.append(self.meta_gamma ** k if self.smdp_discount else self.meta_gamma)
+            if env.done[i]:
+                finished.append(self._close(i, ep, rec))
+                self.open[i] = _Open()
+        return finished
+
+    def _close(self, i: int, ep: _Open, rec: StepRecord):
+        env = rec.env
+        t = len(ep.obs)
+        sub = Episode(
+            frames=np.stack(ep.obs + [env.obs[i].copy()]),
+            fields={"action": np.asarray(ep.action, np.uint8), "reward": np.asarray(ep.reward, np.float32),
+                    "terminal": np.asarray(ep.terminal, bool), "discount": np.full(t, self.sub_gamma, np.float32)},
+            segment_starts=np.asarray(ep.segment_starts, np.int32),
+            segment_data={"subgoal_image": np.stack(ep.segment_images)} if self.hierarchical else {},
+        )
+        meta = None
+        if self.hierarchical:
+            meta = Episode(
+                frames=np.stack(ep.meta_frames + [rec.meta_next_input[i].copy()]),
+                fields={"action": np.asarray(ep.meta_action, np.uint8),
+                        "reward": np.asarray(ep.meta_reward, np.float32),
+                        "terminal": np.asarray(ep.meta_terminal, bool),
+                        "discount": np.asarray(ep.meta_discount, np.float32)},
+            )
+        stats = EpisodeStats(steps=t, classical=ep.classical, extrinsic=ep.extrinsic, intrinsic=ep.intrinsic,
+                             success=bool(env.success[i]), options=len(ep.segment_starts))
+        return i, sub, meta, stats

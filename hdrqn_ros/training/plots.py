@@ -1,0 +1,98 @@
+"""Learning curves like thesis figures 4.6-4.11: reward, steps, extrinsic and intrinsic
+reward and success ratio per episode, as a moving average; runs sharing a label (seeds)
+are drawn as their mean with a min-max band."""
+from __future__ import annotations
+
+import csv
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+PANELS = [("reward", "reward (classical)"), ("steps", "steps per episode"), ("extrinsic", "extrinsic reward"),
+          ("intrinsic", "intrinsic reward"), ("success", "ordered success ratio")]
+
+
+def read_csv(path: Path) -> dict[str, np.ndarray]:
+    """Columns of a metrics CSV as float arrays (empty dict for a missing/empty file)."""
+    if not path.exists():
+        return {}
+    with open(path, newline="", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        return {}
+    return {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
+
+
+def moving_average(x: np.ndarray, window: int) -> np.ndarray:
+    """Trailing mean over up to ``window`` values (same length as ``x``)."""
+    c = np.cumsum(np.insert(x.astype(float), 0, 0.0))
+    idx = np.arange(1, len(x) + 1)
+    lo = np.maximum(idx - window, 0)
+    return (c[idx] - c[lo]) / (idx - lo)
+
+
+def run_label(run: Path) -> str:
+    cfg = run / "config.yaml"
+    if cfg.exists():
+        data = yaml.safe_load(cfg.read_text()) or {}
+        return str(data.get("algo", run.name))
+    return run.name
+
+
+def plot_runs(runs: list[Path], out: Path, window: int = 200, labels: dict[str, str] | None = None) -> Path:
+    """Draw the curves of ``runs`` into ``out`` (PNG); returns ``out``.
+
+    Raises ``FileNotFoundError`` when a run has no ``train.csv``.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = labels or {}
+    groups: dict[str, list[dict]] = defaultdict(list)
+    evals: dict[str, list[dict]] = defaultdict(list)
+    for run in runs:
+        train = read_csv(run / "train.csv")
+        if not train:
+            raise FileNotFoundError(f"{run} has no train.csv with rows: is it a run directory?")
+        label = labels.get(str(run), run_label(run))
+        groups[label].append(train)
+        ev = read_csv(run / "eval.csv")
+        if ev:
+            evals[label].append(ev)
+
+    fig, axes = plt.subplots(2, 3, figsize=(15, 8))
+    for ax, (key, title) in zip(axes.flat, PANELS):
+        for i, (label, tables) in enumerate(groups.items()):
+            n = min(len(t["episode"]) for t in tables)
+            curves = np.stack([moving_average(t[key][:n], window) for t in tables])
+            x = tables[0]["episode"][:n]
+            color = f"C{i}"
+            ax.plot(x, curves.mean(0), color=color, label=f"{label} (n={len(tables)})")
+            if len(tables) > 1:
+                ax.fill_between(x, curves.min(0), curves.max(0), color=color, alpha=0.2)
+        ax.set_title(title)
+        ax.set_xlabel("episode")
+        ax.grid(alpha=0.3)
+    ax = axes.flat[5]
+    for i, (label, tables) in enumerate(evals.items()):
+        n = min(len(t["episode"]) for t in tables)
+        curves = np.stack([t["success"][:n] for t in tables])
+        x = tables[0]["episode"][:n]
+        ax.plot(x, curves.mean(0), "o-", color=f"C{list(groups).index(label)}", label=label)
+        if len(tables) > 1:
+            ax.fill_between(x, curves.min(0), curves.max(0), color=f"C{list(groups).index(label)}", alpha=0.2)
+    ax.set_title("greedy evaluation: success ratio")
+    ax.set_xlabel("episode")
+    ax.set_ylim(-0.02, 1.02)
+    ax.grid(alpha=0.3)
+    axes.flat[0].legend(loc="best", fontsize=8)
+    fig.suptitle(f"moving average over {window} episodes; band: min-max over runs")
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out

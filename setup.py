@@ -1,0 +1,42 @@
+"""hdrqn_ros: an ament_python ROS 2 package and a pip-installable Python package at once."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "hdrqn_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    description="Hierarchical deep recurrent Q-learning (hDRQN) for ROS 2 and plain Python",
+    long_description=open("README.md", encoding="utf-8").read(),
+    long_description_content_type="text/markdown",
+    license="Apache-2.0",
+    python_requires=">=3.11",
+    packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/launch", glob("launch/*.py")),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+    ],
+    install_requires=[
+        "numpy>=1.24",
+        "gymnasium>=1.0",
+        "ale-py>=0.9",
+        "pyyaml>=6",
+        "pydantic>=2",
+        "tqdm>=4.60",
+        "matplotlib>=3.7",
+        "tensorboard>=2.14",
+        "torch>=2.1",
+    ],
+    extras_require={"test": ["pytest>=8", "hypothesis>=6.100"]},
+    zip_safe=True,
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "hdrqn = hdrqn_ros.cli:main",
+        ],
+    },
+)

@@ -1,0 +1,202 @@
+"""Q-networks: layer shapes, exact parameter counts (tables 4.5/4.6), act()==forward()."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from hdrqn_ros.agents.networks import (
+    ConvTrunk,
+    DuelingHead,
+    FeedForwardQNetwork,
+    MlpTrunk,
+    RecurrentQNetwork,
+    lstm_state_size,
+    make_image_qnet,
+    make_state_qnet,
+)
+
+torch.manual_seed(0)
+
+
+def n_params(module):
+    return sum(p.numel() for p in module.parameters())
+
+
+# Hand-written arithmetic, layer by layer.
+def conv(k, cin, cout):
+    return k * k * cin * cout + cout
+
+
+CONV_REST = conv(3, 32, 32) + conv(3, 32, 32) + conv(3, 32, 256)  # 9248 + 9248 + 73984
+LSTM = 4 * (256 * 256 * 2 + 2 * 256)  # W_ih, W_hh, b_ih, b_hh: 526,336
+
+
+def dueling(n):
+    return (128 * n + n) + (128 * 1 + 1)
+
+
+MLP = (256 * 200 + 200) + (200 * 200 + 200) + (200 * 256 + 256)  # 143,056
+
+
+def images(*lead, c=3, seed=0):
+    rng = np.random.default_rng(seed)
+    return torch.from_numpy(rng.integers(0, 256, size=(*lead, 44, 44, c), dtype=np.uint8))
+
+
+def test_conv_layer_shapes():
+    trunk = ConvTrunk(6)
+    maps = trunk.feature_maps(images(5, c=6))
+    assert [tuple(m.shape) for m in maps] == [
+        (5, 32, 11, 11),
+        (5, 32, 5, 5),
+        (5, 32, 3, 3),
+        (5, 256, 1, 1),
+    ]
+    assert trunk(images(5, c=6)).shape == (5, 256)
+    assert all((m >= 0).all() for m in maps)  # ReLU after every conv
+
+
+def test_mlp_and_head_shapes():
+    mlp = MlpTrunk(256)
+    x = torch.randn(7, 256)
+    h1 = torch.relu(mlp.net[0](x))
+    assert h1.shape == (7, 200)
+    assert mlp.net[2](h1).shape == (7, 200)
+    assert mlp(x).shape == (7, 256)
+    assert (mlp(x) < 0).any()  # FC3 has no activation
+    assert DuelingHead(5)(torch.randn(3, 4, 256)).shape == (3, 4, 5)
+
+
+def test_parameter_counts():
+    assert CONV_REST == 9248 + 9248 + 73984
+    assert LSTM == 526_336
+    assert MLP == 143_056
+
+    v1_meta = make_image_qnet(3, 2)
+    assert n_params(v1_meta) == conv(3, 3, 32) + CONV_REST + LSTM + dueling(2) == 620_099
+
+    sub = make_image_qnet(6, 4)
+    assert n_params(sub) == conv(3, 6, 32) + CONV_REST + LSTM + dueling(4) == 621_221
+
+    v2_meta = make_state_qnet(256, 2)
+    assert n_params(v2_meta) == MLP + LSTM + dueling(2) == 669_779
+
+    dqn = make_image_qnet(3, 4, recurrent=False)
+    assert isinstance(dqn, FeedForwardQNetwork)
+    assert n_params(dqn) == conv(3, 3, 32) + CONV_REST + (256 * 256 + 256) + dueling(4) == 159_813
+
+
+def test_forward_shapes_and_state_convention():
+    net = make_image_qnet(6, 4)
+    x = images(2, 3, c=6)
+    q, (h, c) = net(x)
+    assert q.shape == (2, 3, 4)
+    assert h.shape == c.shape == (2, lstm_state_size)
+    q1, (h1, c1) = net.act(x[:, 0])
+    assert q1.shape == (2, 4) and h1.shape == c1.shape == (2, 256)
+    with pytest.raises(ValueError):
+        net(x, (h[:1], c[:1]))
+    with pytest.raises(ValueError):
+        net(images(2, 3, c=3))
+
+
+def test_act_matches_forward():
+    net = make_image_qnet(6, 4)
+    x = images(3, 6, c=6, seed=1)
+    # Non-zero initial state too.
+    state0 = (torch.randn(3, 256) * 0.5, torch.randn(3, 256) * 0.5)
+    for init in (None, state0):
+        with torch.no_grad():
+            q_seq, (h_seq, c_seq) = net(x, init)
+            state = init
+            qs = []
+            for t in range(x.shape[1]):
+                q, state = net.act(x[:, t], state)
+                qs.append(q)
+        torch.testing.assert_close(torch.stack(qs, 1), q_seq, atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(state[0], h_seq, atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(state[1], c_seq, atol=1e-5, rtol=1e-4)
+    # Continuing a sequence with forward() from act()'s state.
+    with torch.no_grad():
+        _, st = net.act(x[:, 0])
+        q_rest, _ = net(x[:, 1:], st)
+        q_all, _ = net(x)
+    torch.testing.assert_close(q_rest, q_all[:, 1:], atol=1e-5, rtol=1e-4)
+
+
+def test_act_matches_forward_state_net_and_grad_flows():
+    net = make_state_qnet(256, 2)
+    x = torch.randn(2, 4, 256)
+    q_seq, _ = net(x)
+    state, qs = None, []
+    for t in range(4):
+        q, state = net.act(x[:, t], state)
+        qs.append(q)
+    torch.testing.assert_close(torch.stack(qs, 1), q_seq, atol=1e-5, rtol=1e-4)
+    torch.stack(qs, 1).sum().backward()
+    assert net.lstm.weight_hh_l0.grad is not None and net.lstm.weight_hh_l0.grad.abs().sum() > 0
+
+
+def test_feedforward_net_signatures():
+    net = make_image_qnet(3, 4, recurrent=False)
+    x = images(2, 3)
+    q, state = net(x)
+    assert q.shape == (2, 3, 4) and state is None
+    q1, state = net.act(x[:, 1], None)
+    assert state is None
+    torch.testing.assert_close(q1, q[:, 1])
+
+
+def test_dueling_mean_zero_advantage():
+    head = DuelingHead(5)
+    with torch.no_grad():
+        head.advantage.bias.uniform_(-1, 1)
+        head.value.bias.fill_(0.7)
+    x = torch.randn(10, 256)
+    a = head.advantages(x)
+    torch.testing.assert_close(a.mean(-1), torch.zeros(10), atol=1e-6, rtol=0)
+    q = head(x)
+    v = head.value(x[:, 128:]).squeeze(-1)
+    torch.testing.assert_close(q.mean(-1), v, atol=1e-5, rtol=1e-5)  # mean(Q) == V
+    # Advantage sees only the first half, value only the second half.
+    x2 = x.clone()
+    x2[:, 128:] += 1.0
+    torch.testing.assert_close(head.advantages(x2), a)
+
+
+@pytest.mark.parametrize("make", [lambda: make_image_qnet(6, 4), lambda: make_state_qnet(256, 2),
+                                  lambda: make_image_qnet(3, 4, recurrent=False)])
+def test_xavier_init_bounds_and_zero_biases(make):
+    net = make()
+    for name, p in net.named_parameters():
+        if "bias" in name:
+            assert torch.count_nonzero(p) == 0, name
+            continue
+        if p.dim() == 4:  # conv: fan = channels * kernel area
+            rf = p.shape[2] * p.shape[3]
+            fan_in, fan_out = p.shape[1] * rf, p.shape[0] * rf
+        else:
+            fan_out, fan_in = p.shape
+        bound = math.sqrt(6.0 / (fan_in + fan_out))
+        assert p.abs().max() <= bound + 1e-7, name
+        assert p.abs().max() > 0.5 * bound, name  # uniform over the full range, not tiny
+        assert abs(p.std().item() - bound / math.sqrt(3)) < 0.2 * bound, name
+
+
+def test_uint8_input_handling():
+    net = make_image_qnet(3, 2)
+    x = images(2, 2, seed=3)
+    with torch.no_grad():
+        q_u8, _ = net(x)
+        q_f, _ = net(x.float() / 255.0)  # floats are taken as already scaled
+        q_np, _ = net(x.numpy())  # numpy arrays are accepted
+    torch.testing.assert_close(q_u8, q_f)
+    torch.testing.assert_close(q_u8, q_np)
+    # Channels-last: the network must see channel c of pixel (i, j) as channel c.
+    trunk = ConvTrunk(3)
+    img = torch.zeros(1, 44, 44, 3, dtype=torch.uint8)
+    img[..., 2] = 255
+    chw = trunk._prepare(img)
+    assert chw.shape == (1, 3, 44, 44)
+    assert chw[0, 2].min() == 1.0 and chw[0, :2].max() == 0.0

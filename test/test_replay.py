@@ -1,0 +1,218 @@
+"""Episodic replay for Bootstrapped Random Updates (thesis 3.4)."""
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from hdrqn_ros.agents.replay import Episode, EpisodeReplay
+
+
+def make_episode(eid, seg_lengths, frame_shape=(2,), img=False):
+    """Frames encode (episode id, step index) so windows can be traced back exactly."""
+    t = int(sum(seg_lengths))
+    starts = np.concatenate([[0], np.cumsum(seg_lengths)[:-1]]).astype(np.int32)
+    if img:
+        frames = np.zeros((t + 1, *frame_shape), np.uint8)
+        frames[:, 0, 0, 0] = eid
+        frames[:, 0, 0, 1] = np.arange(t + 1)
+    else:
+        frames = np.zeros((t + 1, *frame_shape), np.float32)
+        frames[:, 0] = eid
+        frames[:, 1] = np.arange(t + 1)
+    step = np.arange(t)
+    seg_of_step = np.searchsorted(starts, step, side="right") - 1
+    fields = {
+        "action": (step % 4).astype(np.uint8),
+        "reward": step.astype(np.float32) + 0.5,
+        "terminal": step == t - 1,
+        "step": step.astype(np.int32),
+        "segment": seg_of_step.astype(np.int16),
+    }
+    seg_data = {"subgoal": np.arange(len(seg_lengths), dtype=np.int32) + 100 * eid}
+    return Episode(frames, fields, starts, seg_data)
+
+
+def check_batch(replay, batch, n):
+    b = batch.valid.shape[0]
+    assert batch.frames.shape[:2] == (b, n + 1)
+    for name, a in batch.fields.items():
+        assert a.shape[:2] == (b, n), name
+    for i in range(b):
+        w = int(batch.valid[i].sum())
+        assert w >= 1
+        assert batch.valid[i, :w].all() and not batch.valid[i, w:].any()  # right padded
+        ep = replay[int(batch.episode_index[i])]
+        eid = ep.frames[0, 0]
+        # never crosses episodes: every frame of the window comes from one episode
+        assert (batch.frames[i, : w + 1, 0] == eid).all()
+        steps = batch.fields["step"][i, :w]
+        assert (np.diff(steps) == 1).all()
+        assert steps[0] == batch.start[i]
+        # next-frame alignment: frames[t] is the input of step t, frames[t + 1] its next
+        assert (batch.frames[i, :w, 1] == steps).all()
+        assert (batch.frames[i, 1 : w + 1, 1] == steps + 1).all()
+        # never crosses a segment boundary
+        segs = batch.fields["segment"][i, :w]
+        assert (segs == segs[0]).all()
+        k = int(segs[0])
+        seg_len = int(ep.segment_lengths[k])
+        assert w == min(n, seg_len)
+        assert batch.segment_data["subgoal"][i] == ep.segment_data["subgoal"][k]
+        # padding is zeros
+        assert not batch.frames[i, w + 1 :].any()
+        assert all(not a[i, w:].any() for a in batch.fields.values())
+        # loss on the last max(1, n // 2) valid steps
+        expect = np.zeros(n, bool)
+        expect[max(0, w - max(1, n // 2)) : w] = True
+        assert (batch.loss_mask[i] == expect).all()
+
+
+def test_sample_windows_respect_segments_and_alignment():
+    replay = EpisodeReplay(10, seed=0)
+    replay.add(make_episode(1, [5, 1, 12]))
+    replay.add(make_episode(2, [20]))
+    replay.add(make_episode(3, [2, 3]))
+    for n in (1, 2, 4, 8, 30):
+        check_batch(replay, replay.sample(16, n), n)
+
+
+def test_short_segment_padding_and_masks():
+    replay = EpisodeReplay(5, seed=1)
+    replay.add(make_episode(7, [3]))
+    batch = replay.sample(4, 8)
+    assert (batch.valid == np.array([[1, 1, 1, 0, 0, 0, 0, 0]], bool)).all()
+    # shorter than n // 2 = 4: every valid step carries the loss
+    assert (batch.loss_mask == batch.valid).all()
+    assert (batch.frames[:, :4, 1] == [0, 1, 2, 3]).all()
+    assert not batch.frames[:, 4:].any()
+
+    b1 = replay.sample(6, 1)
+    assert b1.valid.all() and b1.loss_mask.all() and b1.frames.shape == (6, 2, 2)
+    assert (b1.frames[:, 1, 1] == b1.frames[:, 0, 1] + 1).all()
+
+    replay.add(make_episode(8, [10]))
+    b = replay.sample(64, 6)
+    long = b.valid.sum(1) == 6
+    assert long.any()
+    assert (b.loss_mask[long] == np.array([0, 0, 0, 1, 1, 1], bool)).all()
+
+
+def test_segment_chosen_proportional_to_length():
+    replay = EpisodeReplay(2, seed=2)
+    replay.add(make_episode(1, [1, 9]))
+    b = replay.sample(4000, 2)
+    frac_long = (b.fields["segment"][:, 0] == 1).mean()
+    assert 0.87 < frac_long < 0.93
+
+
+def test_image_frames_and_nbytes_accounting():
+    replay = EpisodeReplay(10, seed=0)
+    ep = make_episode(1, [4, 6], frame_shape=(44, 44, 3), img=True)
+    ep.segment_data["subgoal_image"] = np.zeros((2, 44, 44, 3), np.uint8)
+    expected = (
+        11 * 5808  # T + 1 frames
+        + 10 * (1 + 4 + 1 + 4 + 2)  # action u8, reward f32, terminal bool, step i32, segment i16
+        + 2 * 4  # segment starts int32
+        + 2 * 4  # subgoal ids
+        + 2 * 5808  # subgoal images, once per option
+    )
+    assert ep.nbytes == expected
+    replay.add(ep)
+    assert replay.nbytes == expected and replay.num_steps == 10 and len(replay) == 1
+    b = replay.sample(3, 4)
+    assert b.frames.shape == (3, 5, 44, 44, 3) and b.frames.dtype == np.uint8
+    assert b.segment_data["subgoal_image"].shape == (3, 44, 44, 3)
+
+
+def test_views_are_copied_so_nbytes_is_real():
+    big = np.zeros((1000, 2), np.float32)
+    ep = Episode(big[:4], {"r": np.zeros(3, np.float32)})
+    replay = EpisodeReplay(3)
+    replay.add(ep)
+    stored = replay[0]
+    assert stored.frames.base is None and not np.shares_memory(stored.frames, big)
+    assert replay.nbytes == 4 * 2 * 4 + 3 * 4 + 4
+
+
+def test_ring_capacity_in_episodes():
+    replay = EpisodeReplay(3, seed=0)
+    for e in range(1, 6):
+        replay.add(make_episode(e, [e + 1]))
+    assert len(replay) == 3
+    assert [int(replay[i].frames[0, 0]) for i in range(3)] == [3, 4, 5]
+    assert replay.num_steps == 4 + 5 + 6
+    assert replay.nbytes == sum(replay[i].nbytes for i in range(3))
+
+
+def test_ring_capacity_in_bytes():
+    one = make_episode(0, [10]).nbytes
+    replay = EpisodeReplay(100, seed=0, capacity_bytes=int(2.5 * one))
+    for e in range(1, 6):
+        replay.add(make_episode(e, [10]))
+        assert replay.nbytes <= replay.capacity_bytes
+    assert len(replay) == 2
+    assert [int(replay[i].frames[0, 0]) for i in range(2)] == [4, 5]
+    with pytest.raises(ValueError, match="capacity_bytes"):
+        replay.add(make_episode(9, [30]))
+
+
+def test_seeded_determinism():
+    def run(seed):
+        replay = EpisodeReplay(10, seed=seed)
+        for e in range(1, 5):
+            replay.add(make_episode(e, [3, 7, 2]))
+        return [replay.sample(5, 4) for _ in range(3)]
+
+    a, b = run(42), run(42)
+    for x, y in zip(a, b):
+        assert (x.frames == y.frames).all() and (x.start == y.start).all()
+    replay = EpisodeReplay(10)
+    replay.add(make_episode(1, [50]))
+    s1 = replay.sample(8, 3, rng=np.random.default_rng(7))
+    s2 = replay.sample(8, 3, rng=np.random.default_rng(7))
+    assert (s1.start == s2.start).all()
+
+
+def test_validation_errors():
+    replay = EpisodeReplay(2)
+    with pytest.raises(ValueError, match="empty"):
+        replay.sample(1, 1)
+    with pytest.raises(ValueError):
+        EpisodeReplay(0)
+    f = np.zeros((5, 2), np.float32)
+    with pytest.raises(ValueError, match="T \\+ 1"):
+        Episode(np.zeros((1, 2)))
+    with pytest.raises(ValueError, match="fields"):
+        Episode(f, {"r": np.zeros(5)})
+    with pytest.raises(ValueError, match="start at 0"):
+        Episode(f, {}, np.array([1, 2]))
+    with pytest.raises(ValueError, match="increase"):
+        Episode(f, {}, np.array([0, 2, 2]))
+    with pytest.raises(ValueError, match="< T"):
+        Episode(f, {}, np.array([0, 4]))
+    with pytest.raises(ValueError, match="segment_data"):
+        Episode(f, {}, np.array([0, 2]), {"g": np.zeros(3)})
+    replay.add(Episode(f, {"r": np.zeros(4, np.float32)}))
+    with pytest.raises(ValueError, match="layout"):
+        replay.add(Episode(f, {"r": np.zeros(4, np.float64)}))
+    with pytest.raises(ValueError):
+        replay.sample(0, 2)
+    with pytest.raises(ValueError):
+        replay.sample(2, 0)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    layouts=st.lists(st.lists(st.integers(1, 9), min_size=1, max_size=5), min_size=1, max_size=4),
+    n=st.integers(1, 10),
+    capacity=st.integers(1, 4),
+    seed=st.integers(0, 2**16),
+)
+def test_property_random_layouts(layouts, n, capacity, seed):
+    replay = EpisodeReplay(capacity, seed=seed)
+    for e, segs in enumerate(layouts, start=1):
+        replay.add(make_episode(e, segs))
+    kept = layouts[-capacity:]
+    assert len(replay) == len(kept)
+    assert replay.num_steps == sum(map(sum, kept))
+    check_batch(replay, replay.sample(6, n), n)

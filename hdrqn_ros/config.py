@@ -65,7 +65,7 @@ class TrainConfig(_Strict):
 
     algo: Algo = "hdrqn-v2"
     env: str = "hdrqn/GridWorld-2Goals-v0"
-    env_kwargs: dict[str, Any] = Field(default_factory=lambda: {"view": 5})
+    env_kwargs: dict[str, Any] = Field(default_factory=dict, description="environment options, e.g. {view: 3}")
     episodes: int = Field(10_000, ge=1, description="training episodes")
     num_envs: int = Field(16, ge=1, description="environments stepped together")
     seed: int = 0
@@ -78,7 +78,8 @@ class TrainConfig(_Strict):
     eval_every: int = Field(500, ge=0, description="episodes between greedy evaluations (0: never)")
     eval_episodes: int = Field(100, ge=1)
     checkpoint_every: int = Field(1000, ge=1, description="episodes between checkpoints")
-    torch_threads: int | None = Field(None, ge=1)
+    torch_threads: int = Field(1, ge=1, description="torch intra-op threads; 1 is fastest for these small networks on a CPU")
+    parallel_updates: bool = Field(True, description="run the meta and sub updates in two threads at once (they share nothing)")
     sub: ControllerConfig = Field(default_factory=_sub_defaults)
     meta: ControllerConfig = Field(default_factory=_meta_defaults)
 
@@ -106,7 +107,7 @@ def build_config(files: list[str | Path] = (), **overrides: Any) -> TrainConfig:
 
     Raises :class:`ConfigError` naming the file and the bad key or value.
     """
-    data: dict[str, Any] = {}
+    data: dict[str, Any] = TrainConfig().model_dump()  # nested sections merge onto the defaults
     for file in files:
         path = Path(file)
         try:

@@ -40,7 +40,7 @@ class Controller:
         self.device = torch.device(device)
         self.online = net.to(self.device)
         self.target = copy.deepcopy(net).to(self.device).requires_grad_(False)
-        self.optimizer = torch.optim.Adam(self.online.parameters(), lr=cfg.lr)
+        self.optimizer = torch.optim.Adam(self.online.parameters(), lr=cfg.lr, fused=True)
         self.replay = EpisodeReplay(cfg.replay_episodes, capacity_bytes=cfg.replay_bytes, seed=seed)
         self.build_input = build_input
         self.recurrent = bool(getattr(net, "recurrent", False))
@@ -95,7 +95,7 @@ class Controller:
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if self.cfg.grad_clip is not None:
-            nn.utils.clip_grad_norm_(self._online_params, self.cfg.grad_clip)
+            nn.utils.clip_grad_norm_(self._online_params, self.cfg.grad_clip, foreach=True)
         self.optimizer.step()
         self.soft_update()
         self.updates += 1

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import time
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -59,8 +60,7 @@ class Trainer:
         self.run_dir = Path(run_dir)
         self.checkpoint_path = self.run_dir / "checkpoints" / "last.pt"
         self.progress = progress
-        if cfg.torch_threads:
-            torch.set_num_threads(cfg.torch_threads)
+        torch.set_num_threads(cfg.torch_threads)
         torch.manual_seed(cfg.seed)
         self.rng = np.random.default_rng(cfg.seed)
         self.agent = build_agent(cfg)
@@ -80,6 +80,8 @@ class Trainer:
                                         cfg.smdp_discount)
         self.log = MetricsLog(self.run_dir, tensorboard=tensorboard)
         self.last_eval: dict | None = None
+        self._pending_updates = 0
+        self._meta_thread = ThreadPoolExecutor(1, thread_name_prefix="meta-update") if cfg.parallel_updates else None
 
     # -- schedules -----------------------------------------------------------------------
     def epsilons(self) -> tuple[float, float]:
@@ -117,12 +119,47 @@ class Trainer:
                         progress={"episodes": self.episodes, "env_steps": self.env_steps, "meta_begin": self.meta_begin})
 
     # -- main loop -------------------------------------------------------------------------
+    def step(self) -> list[tuple[EpisodeStats, float, float]]:
+        """One primitive step of every environment, then the updates it is owed (one per
+        controller every ``update_every`` env steps). Returns the finished episodes'
+        statistics with the epsilons they were played with."""
+        cfg = self.cfg
+        eps_sub, eps_meta = self.epsilons()
+        record = self.rollout.step(eps_sub, eps_meta, self.rng)
+        self.env_steps += cfg.num_envs
+        finished = []
+        for _, sub_ep, meta_ep, stats in self.recorder.add(record):
+            if self.episodes >= cfg.episodes:
+                break
+            self.agent.sub.replay.add(sub_ep)
+            if meta_ep is not None:
+                self.agent.meta.replay.add(meta_ep)
+            self.episodes += 1
+            finished.append((stats, eps_sub, eps_meta))
+        self._pending_updates += cfg.num_envs
+        while self._pending_updates >= cfg.update_every:
+            self._pending_updates -= cfg.update_every
+            self._update()
+        return finished
+
+    def _update(self) -> None:
+        """One update of each controller that has enough data; the meta update runs in a
+        second thread beside the sub update (torch releases the GIL in its kernels)."""
+        meta, sub = self.agent.meta, self.agent.sub
+        meta_due = meta is not None and self.episodes >= self.cfg.sub_only_episodes and self._learning(meta)
+        pending = self._meta_thread.submit(meta.update) if meta_due and self._meta_thread else None
+        if self._learning(sub):
+            sub.update()
+        if pending is not None:
+            pending.result()
+        elif meta_due:
+            meta.update()
+
     def run(self) -> dict:
         """Train until ``cfg.episodes``; returns the summary written to ``summary.json``."""
         cfg = self.cfg
         start, start_steps = time.perf_counter(), self.env_steps
         recent = deque(maxlen=100)
-        pending_updates = 0
         bar = None
         if self.progress:
             from tqdm import tqdm
@@ -133,43 +170,25 @@ class Trainer:
         next_ckpt = self._next_multiple(cfg.checkpoint_every)
         try:
             while self.episodes < cfg.episodes:
-                eps_sub, eps_meta = self.epsilons()
-                record = self.rollout.step(eps_sub, eps_meta, self.rng)
-                self.env_steps += cfg.num_envs
-                for _, sub_ep, meta_ep, stats in self.recorder.add(record):
-                    if self.episodes >= cfg.episodes:
-                        break
-                    self.agent.sub.replay.add(sub_ep)
-                    if meta_ep is not None:
-                        self.agent.meta.replay.add(meta_ep)
-                    self.episodes += 1
+                for i, (stats, eps_sub, eps_meta) in enumerate(finished := self.step()):
                     recent.append(stats)
-                    self.log.train({"episode": self.episodes, "env_steps": self.env_steps, "steps": stats.steps,
-                                    "reward": stats.classical, "extrinsic": stats.extrinsic,
+                    self.log.train({"episode": self.episodes - len(finished) + i + 1, "env_steps": self.env_steps,
+                                    "steps": stats.steps, "reward": stats.classical, "extrinsic": stats.extrinsic,
                                     "intrinsic": stats.intrinsic, "success": int(stats.success),
                                     "options": stats.options, "eps_sub": round(eps_sub, 4),
-                                    "eps_meta": round(eps_meta, 4),
-                                    "wall_s": round(time.perf_counter() - start, 2)})
-                    if bar is not None:
-                        bar.update(1)
-                pending_updates += cfg.num_envs
-                while pending_updates >= cfg.update_every:
-                    pending_updates -= cfg.update_every
-                    if self._learning(self.agent.sub):
-                        self.agent.sub.update()
-                    meta = self.agent.meta
-                    if meta is not None and self.episodes >= cfg.sub_only_episodes and self._learning(meta):
-                        meta.update()
+                                    "eps_meta": round(eps_meta, 4), "wall_s": round(time.perf_counter() - start, 2)})
+                if bar is not None and finished:
+                    bar.update(len(finished))
                 if next_eval and self.episodes >= next_eval:
                     self._evaluate(start)
                     next_eval = self._next_multiple(cfg.eval_every)
                 if self.episodes >= next_ckpt:
                     self.save()
                     next_ckpt = self._next_multiple(cfg.checkpoint_every)
-                if bar is not None and self.env_steps % (cfg.num_envs * 20) == 0:
+                if bar is not None and finished:
                     rate = (self.env_steps - start_steps) / max(time.perf_counter() - start, 1e-9)
-                    post = {"steps/s": f"{rate:.0f}", "succ": f"{np.mean([r.success for r in recent]):.2f}" if recent else "-",
-                            "eps": f"{eps_sub:.2f}/{eps_meta:.2f}"}
+                    post = {"steps/s": f"{rate:.0f}", "succ": f"{np.mean([r.success for r in recent]):.2f}",
+                            "eps": f"{finished[-1][1]:.2f}/{finished[-1][2]:.2f}"}
                     if self.last_eval:
                         post["eval"] = f"{self.last_eval['success']:.2f}"
                     bar.set_postfix(post, refresh=False)

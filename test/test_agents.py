@@ -1,0 +1,135 @@
+"""The learning core's maths: Double DQN targets, loss on the last n/2 steps, soft target
+updates, and which networks each algorithm is built from."""
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from hdrqn_ros.agents.algorithms import ALGO_SPECS, Agent
+from hdrqn_ros.agents.controller import Controller, TrainingDiverged
+from hdrqn_ros.agents.networks import ConvTrunk, MlpTrunk, RecurrentQNetwork, FeedForwardQNetwork
+from hdrqn_ros.agents.replay import Episode
+from hdrqn_ros.config import ControllerConfig, EpsilonSchedule, build_config
+
+
+class LinearQ(nn.Module):
+    """Q(x) = x @ W for one-hot state vectors: a network whose Q-values we set by hand."""
+
+    recurrent = True  # so the controller samples windows of n steps
+
+    def __init__(self, n_states: int, n_actions: int):
+        super().__init__()
+        self.w = nn.Parameter(torch.zeros(n_states, n_actions))
+        self.n_outputs = n_actions
+
+    def initial_state(self, batch_size, device=None):
+        return None
+
+    def forward(self, x, state=None):
+        return x.float() @ self.w, None
+
+
+def _one_hot(idx, n):
+    return np.eye(n, dtype=np.float32)[idx]
+
+
+def _controller(seq_len=4, gamma=0.9, tau=0.5, loss="mse"):
+    cfg = ControllerConfig(batch_size=1, seq_len=seq_len, replay_episodes=10, gamma=gamma, tau=tau, lr=1e-3,
+                           loss=loss, grad_clip=None)
+    return Controller("test", LinearQ(6, 2), cfg, build_input=lambda b: b.frames, seed=0)
+
+
+def _episode():
+    # states 0..4 then 5; 4 steps only so every window is the whole episode
+    frames = _one_hot([0, 1, 2, 3, 4], 6)
+    return Episode(frames=frames, fields={
+        "action": np.array([0, 1, 0, 1], np.uint8),
+        "reward": np.array([100.0, -100.0, 0.5, 1.0], np.float32),  # first two steps are outside the loss
+        "terminal": np.array([False, False, False, True]),
+        "discount": np.full(4, 0.9, np.float32)})
+
+
+def test_double_dqn_loss_matches_hand_computation():
+    ctrl = _controller()
+    rng = np.random.default_rng(1)
+    online = rng.normal(size=(6, 2)).astype(np.float32)
+    target = rng.normal(size=(6, 2)).astype(np.float32)
+    ctrl.online.w.data = torch.tensor(online)
+    ctrl.target.w.data = torch.tensor(target)
+    ctrl.replay.add(_episode())
+    # loss only on the last n/2 = 2 steps (t = 2, 3); step 3 is terminal
+    q2 = online[2, 0]
+    a3 = online[3].argmax()  # online network picks the next action ...
+    y2 = 0.5 + 0.9 * target[3, a3]  # ... the target network values it
+    q3, y3 = online[3, 1], 1.0
+    expected = ((q2 - y2) ** 2 + (q3 - y3) ** 2) / 2
+    assert ctrl.update() == pytest.approx(expected, rel=1e-5)
+
+
+def test_huber_loss_option():
+    ctrl = _controller(loss="huber")
+    ctrl.replay.add(_episode())
+    # all Q = 0: td errors are -0.5 (step 2) and -1.0 (step 3); Huber(0.5)=0.125, Huber(1)=0.5
+    assert ctrl.update() == pytest.approx((0.125 + 0.5) / 2)
+
+
+def test_soft_target_update_is_tau_interpolation():
+    ctrl = _controller(tau=0.25)
+    ctrl.replay.add(_episode())
+    before_target = ctrl.target.w.detach().clone()
+    ctrl.update()
+    after_online = ctrl.online.w.detach()
+    expected = 0.25 * after_online + 0.75 * before_target
+    assert torch.allclose(ctrl.target.w, expected, atol=1e-7)
+    assert not torch.allclose(after_online, before_target)
+
+
+def test_nan_loss_raises_training_diverged():
+    ctrl = _controller()
+    ctrl.replay.add(_episode())
+    ctrl.online.w.data[:] = float("nan")
+    with pytest.raises(TrainingDiverged, match="loss is nan"):
+        ctrl.update()
+
+
+def test_epsilon_schedule_is_linear_then_flat():
+    eps = EpsilonSchedule(start=1.0, end=0.1, steps=100)
+    assert eps.value(0) == 1.0
+    assert eps.value(50) == pytest.approx(0.55)
+    assert eps.value(100) == pytest.approx(0.1)
+    assert eps.value(10_000) == pytest.approx(0.1)
+
+
+@pytest.mark.parametrize("algo", list(ALGO_SPECS))
+def test_each_algorithm_is_built_from_the_right_networks(algo):
+    cfg = build_config([], algo=algo)
+    agent = Agent(cfg, num_actions=4, num_subgoals=2)
+    spec = ALGO_SPECS[algo]
+    net_type = RecurrentQNetwork if spec.recurrent else FeedForwardQNetwork
+    assert isinstance(agent.sub.online, net_type)
+    assert agent.sub.online.trunk.in_channels == (6 if spec.hierarchical else 3)
+    assert agent.sub.n_outputs == 4
+    assert agent.sub.seq_len == (8 if spec.recurrent else 1)
+    if not spec.hierarchical:
+        assert agent.meta is None
+        return
+    assert agent.meta.n_outputs == 2
+    if spec.meta_input == "state":  # hDRQNv2: MLP on the sub-controller's 256-d LSTM state
+        assert isinstance(agent.meta.online, RecurrentQNetwork)
+        assert isinstance(agent.meta.online.trunk, MlpTrunk)
+        assert agent.meta.cfg.lr == 1e-3  # the author's meta learning rate
+    else:
+        assert isinstance(agent.meta.online.trunk, ConvTrunk) and agent.meta.online.trunk.in_channels == 3
+        assert isinstance(agent.meta.online, net_type)
+    assert agent.meta.cfg.batch_size == 12 and agent.sub.cfg.batch_size == 4  # Table 4.7
+    assert agent.meta.cfg.replay_episodes == 1000 and agent.sub.cfg.replay_episodes == 5000
+
+
+def test_table_4_7_defaults():
+    cfg = build_config([])
+    for c in (cfg.sub, cfg.meta):
+        assert c.gamma == 0.99 and c.tau == 0.001
+        assert c.epsilon.start == 1.0
+    assert cfg.sub.lr == 1e-4
+    assert cfg.update_every == 5
+    assert (cfg.sub.seq_len, cfg.meta.seq_len) == (8, 2)  # experiment 3's n^S, n^M

@@ -1,0 +1,200 @@
+"""The training loop end to end: transitions aligned with the environment, every
+algorithm trains, checkpoints resume, bad checkpoints/configs are refused."""
+import hashlib
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+import hdrqn_ros  # noqa: F401
+from hdrqn_ros.cli import main
+from hdrqn_ros.config import ALGOS, ConfigError, build_config
+from hdrqn_ros.agents.controller import TrainingDiverged
+from hdrqn_ros.envs.registration import make_batch
+from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint
+from hdrqn_ros.training.episodes import EpisodeRecorder
+from hdrqn_ros.training.rollout import Rollout
+from hdrqn_ros.training.trainer import Trainer, build_agent
+
+ENV = "hdrqn/GridWorld-2Goals-v0"
+
+
+def tiny(**overrides):
+    """A few episodes on 2 environments; full-size networks, small batches."""
+    base = dict(episodes=6, num_envs=2, learning_starts=0, eval_every=3, eval_episodes=2, checkpoint_every=3,
+                sub={"batch_size": 2, "replay_episodes": 50}, meta={"batch_size": 2, "replay_episodes": 50})
+    return build_config([], **{**base, **overrides})
+
+
+def _record(algo: str, steps: int, seed: int = 7):
+    cfg = build_config([], algo=algo)
+    agent = build_agent(cfg)
+    rollout = Rollout(make_batch(ENV, 2), agent, seed=seed)
+    rec = EpisodeRecorder(2, agent.meta is not None, cfg.sub.gamma, cfg.meta.gamma)
+    rng = np.random.default_rng(0)
+    episodes = {0: [], 1: []}
+    for _ in range(steps):
+        for i, sub, meta, stats in rec.add(rollout.step(0.5, 0.5, rng)):
+            episodes[i].append((sub, meta, stats))
+    return episodes
+
+
+@pytest.mark.parametrize("algo", ["hdrqn-v2", "drqn"])
+def test_recorded_transitions_replay_exactly_in_a_single_env(algo):
+    """Every stored frame, reward, terminal flag, option boundary and subgoal image equals
+    what a fresh single environment gives for the same seed and actions."""
+    episodes = _record(algo, 150)
+    for i, eps in episodes.items():
+        assert len(eps) >= 2
+        env = gym.make(ENV).unwrapped
+        obs, _ = env.reset(seed=7 + i)  # batch env i is seeded seed + i
+        for k, (sub, meta, stats) in enumerate(eps):
+            if k:
+                obs, _ = env.reset()
+            starts = set(sub.segment_starts.tolist())
+            seg = -1
+            for t in range(sub.num_steps):
+                np.testing.assert_array_equal(sub.frames[t], obs)
+                if t in starts:
+                    seg += 1
+                    if meta is not None:
+                        g = int(meta.fields["action"][seg])
+                        env.set_subgoal(g)
+                        np.testing.assert_array_equal(sub.segment_data["subgoal_image"][seg], env.subgoal_image(g))
+                obs, classical, term, trunc, info = env.step(int(sub.fields["action"][t]))
+                if meta is not None:
+                    assert sub.fields["reward"][t] == info["intrinsic"]
+                    assert sub.fields["terminal"][t] == (info["subgoal_reached"] or term)
+                else:
+                    assert sub.fields["reward"][t] == np.float32(classical)
+                    assert sub.fields["terminal"][t] == term
+            np.testing.assert_array_equal(sub.frames[-1], obs)
+            assert term or trunc
+            assert stats.success == info["success"]
+
+
+def test_meta_transitions_sum_extrinsic_reward_over_each_option():
+    for eps in _record("hdrqn-v2", 120).values():
+        for sub, meta, stats in eps:
+            assert meta.num_steps == sub.num_segments == stats.options
+            assert meta.fields["reward"].sum() == pytest.approx(stats.extrinsic, abs=1e-5)
+            np.testing.assert_array_equal(meta.frames[0], 0.0)  # first decision sees zeros (v2)
+            assert meta.frames.shape[1:] == (256,)
+            assert meta.fields["terminal"][:-1].sum() == 0
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_every_algorithm_trains_and_writes_its_run_directory(algo, tmp_path):
+    cfg = tiny(algo=algo)
+    summary = Trainer(cfg, tmp_path, progress=False, tensorboard=False).run()
+    assert summary["episodes"] == 6
+    lines = (tmp_path / "train.csv").read_text().splitlines()
+    assert len(lines) == 1 + 6 and lines[0].startswith("episode,env_steps")
+    assert len((tmp_path / "eval.csv").read_text().splitlines()) == 1 + 2  # at episodes 3 and 6
+    agent = build_agent(cfg)
+    assert agent.sub.updates == 0
+    payload = load_checkpoint(tmp_path / "checkpoints" / "last.pt")
+    agent.load_state_dict(payload["agent"])
+    assert agent.sub.updates > 0
+    assert payload["progress"]["episodes"] == 6
+    assert summary["final_eval"]["episodes"] == 2
+
+
+def test_resume_continues_counters_and_csv(tmp_path):
+    Trainer(tiny(episodes=4), tmp_path, progress=False, tensorboard=False).run()
+    first = load_checkpoint(tmp_path / "checkpoints" / "last.pt")["progress"]
+    with pytest.raises(CheckpointError, match="--resume"):
+        Trainer(tiny(episodes=8), tmp_path, progress=False, tensorboard=False)
+    Trainer(tiny(episodes=8), tmp_path, resume=True, progress=False, tensorboard=False).run()
+    second = load_checkpoint(tmp_path / "checkpoints" / "last.pt")["progress"]
+    assert second["episodes"] == 8 and second["env_steps"] > first["env_steps"]
+    episodes = [int(line.split(",")[0]) for line in (tmp_path / "train.csv").read_text().splitlines()[1:]]
+    assert episodes == list(range(1, 9))
+
+
+def test_checkpoint_of_another_algorithm_is_refused(tmp_path):
+    Trainer(tiny(episodes=2, algo="dqn"), tmp_path, progress=False, tensorboard=False).run()
+    with pytest.raises(CheckpointError, match="algo='dqn'"):
+        Trainer(tiny(episodes=4, algo="hdrqn-v2"), tmp_path, resume=True, progress=False, tensorboard=False)
+
+
+@pytest.mark.parametrize("content", [b"", b"not a checkpoint", b"PK\x03\x04garbage"])
+def test_corrupted_checkpoint_is_a_clear_error(tmp_path, content):
+    path = tmp_path / "bad.pt"
+    path.write_bytes(content)
+    with pytest.raises(CheckpointError, match="bad.pt"):
+        load_checkpoint(path)
+
+
+class _Evil:
+    def __reduce__(self):
+        return (exec, ("import pathlib; pathlib.Path('PWNED').write_text('x')",))
+
+
+def test_pickle_payload_in_checkpoint_is_refused(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    path = tmp_path / "evil.pt"
+    torch.save({"format": "hdrqn_ros-checkpoint", "x": _Evil()}, path)
+    with pytest.raises(CheckpointError):
+        load_checkpoint(path)
+    assert not (tmp_path / "PWNED").exists()
+
+
+def test_divergence_keeps_the_last_good_checkpoint(tmp_path):
+    trainer = Trainer(tiny(episodes=3), tmp_path, progress=False, tensorboard=False)
+    trainer.run()
+    ckpt = tmp_path / "checkpoints" / "last.pt"
+    digest = hashlib.sha256(ckpt.read_bytes()).hexdigest()
+    resumed = Trainer(tiny(episodes=9), tmp_path, resume=True, progress=False, tensorboard=False)
+    with torch.no_grad():
+        for p in resumed.agent.sub.online.parameters():
+            p.fill_(float("nan"))
+    with pytest.raises(TrainingDiverged):
+        resumed.run()
+    assert hashlib.sha256(ckpt.read_bytes()).hexdigest() == digest
+
+
+def test_config_errors_name_the_key(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("sub:\n  batch_sise: 4\n")
+    with pytest.raises(ConfigError, match=r"sub\.batch_sise.*bad\.yaml|bad\.yaml[\s\S]*sub\.batch_sise"):
+        build_config([bad])
+    bad.write_text("episodes: many\n")
+    with pytest.raises(ConfigError, match="episodes"):
+        build_config([bad])
+    with pytest.raises(ConfigError, match="unknown env"):
+        build_config([], env="hdrqn/Nope-v0")
+
+
+def test_partial_nested_override_keeps_other_defaults(tmp_path):
+    f = tmp_path / "c.yaml"
+    f.write_text("meta:\n  lr: 0.0005\n")
+    cfg = build_config([f])
+    assert cfg.meta.lr == 0.0005 and cfg.meta.batch_size == 12 and cfg.meta.seq_len == 2
+
+
+def test_cli_misuse_exits_2(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["train", "--algo", "ppo", "--out", str(tmp_path)])
+    assert exc.value.code == 2
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("learning_rate: 1\n")
+    assert main(["train", "--config", str(bad), "--out", str(tmp_path / "r")]) == 2
+    assert "learning_rate" in capsys.readouterr().err
+    assert main(["eval", "--checkpoint", str(tmp_path / "missing.pt")]) == 2
+    assert main(["plot", str(tmp_path), "--out", str(tmp_path / "x.png")]) == 2
+    assert main(["train", "--view", "7x7", "--out", str(tmp_path / "r2")]) == 2
+
+
+def test_cli_train_eval_plot_round_trip(tmp_path, capsys):
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text("num_envs: 2\nlearning_starts: 0\neval_episodes: 2\neval_every: 2\n"
+                   "sub: {batch_size: 2}\nmeta: {batch_size: 2}\n")
+    run = tmp_path / "run"
+    assert main(["train", "--config", str(cfg), "--episodes", "2", "--out", str(run), "--no-progress"]) == 0
+    assert "greedy eval: success" in capsys.readouterr().out
+    assert (run / "curves.png").stat().st_size > 10_000
+    assert main(["eval", "--checkpoint", str(run / "checkpoints" / "last.pt"), "--episodes", "3"]) == 0
+    assert '"episodes": 3' in capsys.readouterr().out
+    assert main(["plot", str(run), str(run), "--out", str(tmp_path / "both.png")]) == 0

@@ -39,6 +39,8 @@ def _add_train(sub) -> None:
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory")
     p.add_argument("--config", action="append", default=[], metavar="FILE",
                    help="YAML config (repeatable; later files override earlier ones; flags override files)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override any config key, e.g. --set sub.seq_len=12 --set meta.epsilon.steps=20000")
     p.add_argument("--seed", type=int)
     p.add_argument("--num-envs", type=int, help="environments stepped together (default 16)")
     p.add_argument("--view", help="observation window: 3, 5, 11 or full (gridworld domains)")
@@ -83,21 +85,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 # -- commands -----------------------------------------------------------------------------
 def cmd_train(args) -> int:
-    from hdrqn_ros.config import build_config
+    from hdrqn_ros.config import build_config, parse_set
     from hdrqn_ros.training.plots import plot_runs
     from hdrqn_ros.training.trainer import Trainer
 
-    env_kwargs = None
+    overrides = parse_set(args.set)
     if args.view is not None:
-        env_kwargs = {"view": args.view if args.view == "full" else _int(args.view, "--view")}
+        view = args.view if args.view == "full" else _int(args.view, "--view")
+        overrides.setdefault("env_kwargs", {})["view"] = view
     run_dir = Path(args.out)
     files = list(args.config)
     if args.resume and not files and (run_dir / "config.yaml").exists():
         files = [run_dir / "config.yaml"]
-    cfg = build_config(files, algo=args.algo, env=args.env, episodes=args.episodes, seed=args.seed,
-                       num_envs=args.num_envs, device=args.device, eval_every=args.eval_every)
-    if env_kwargs:
-        cfg.env_kwargs = {**cfg.env_kwargs, **env_kwargs}
+    flags = dict(algo=args.algo, env=args.env, episodes=args.episodes, seed=args.seed, num_envs=args.num_envs,
+                 device=args.device, eval_every=args.eval_every)
+    cfg = build_config(files, **{**overrides, **{k: v for k, v in flags.items() if v is not None}})
     print(f"training {cfg.algo} on {cfg.env} {cfg.env_kwargs} for {cfg.episodes} episodes "
           f"({cfg.num_envs} envs, seed {cfg.seed}) -> {run_dir}", file=sys.stderr)
     trainer = Trainer(cfg, run_dir, resume=args.resume, progress=not args.no_progress)

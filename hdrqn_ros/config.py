@@ -57,7 +57,7 @@ def _sub_defaults() -> ControllerConfig:
 
 def _meta_defaults() -> ControllerConfig:
     return ControllerConfig(batch_size=12, seq_len=2, replay_episodes=1000, lr=1e-3,
-                            epsilon=EpsilonSchedule(start=1.0, end=0.05, steps=50_000))
+                            epsilon=EpsilonSchedule(start=1.0, end=0.05, steps=150_000))
 
 
 class TrainConfig(_Strict):
@@ -102,8 +102,33 @@ def _merge(base: dict, override: dict) -> dict:
     return out
 
 
+def parse_set(items: list[str]) -> dict[str, Any]:
+    """``["sub.seq_len=12", "env_kwargs.view=3"]`` -> nested dict; values parsed as YAML.
+
+    Raises :class:`ConfigError` for an item without ``=``.
+    """
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--set expects KEY=VALUE (e.g. sub.seq_len=12), got {item!r}")
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError:
+            value = raw
+        node = out
+        *parents, leaf = key.strip().split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {item!r} conflicts with an earlier --set of {part!r}")
+        node[leaf] = value
+    return out
+
+
 def build_config(files: list[str | Path] = (), **overrides: Any) -> TrainConfig:
-    """Defaults, then each YAML file in order, then ``overrides`` (``None`` values skipped).
+    """Defaults, then each YAML file in order, then ``overrides`` (``None`` values skipped;
+    nested dicts merge key by key).
 
     Raises :class:`ConfigError` naming the file and the bad key or value.
     """
@@ -118,7 +143,6 @@ def build_config(files: list[str | Path] = (), **overrides: Any) -> TrainConfig:
             raise ConfigError(f"{path} is not valid YAML: {exc}") from None
         if not isinstance(loaded, dict):
             raise ConfigError(f"{path}: top level must be a mapping, got {type(loaded).__name__}")
-        loaded.pop("description", None)
         data = _merge(data, loaded)
     data = _merge(data, {k: v for k, v in overrides.items() if v is not None})
     try:

@@ -198,3 +198,19 @@ def test_cli_train_eval_plot_round_trip(tmp_path, capsys):
     assert main(["eval", "--checkpoint", str(run / "checkpoints" / "last.pt"), "--episodes", "3"]) == 0
     assert '"episodes": 3' in capsys.readouterr().out
     assert main(["plot", str(run), str(run), "--out", str(tmp_path / "both.png")]) == 0
+
+
+def test_montezuma_trains_through_the_same_loop(tmp_path):
+    cfg = tiny(env="hdrqn/MontezumaRevenge-v0", episodes=2, env_kwargs={"max_steps": 30}, eval_every=0,
+               sub_only_episodes=1)
+    summary = Trainer(cfg, tmp_path, progress=False, tensorboard=False).run()
+    assert summary["episodes"] == 2 and summary["env_steps"] >= 60
+
+
+def test_every_shipped_config_is_valid():
+    from pathlib import Path
+
+    files = sorted((Path(__file__).parents[1] / "config").glob("*.yaml"))
+    assert len(files) >= 8
+    for f in files:
+        build_config([f])

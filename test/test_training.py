@@ -214,3 +214,13 @@ def test_every_shipped_config_is_valid():
     assert len(files) >= 8
     for f in files:
         build_config([f])
+
+
+def test_thesis_replay_configuration_fits_in_2_gib():
+    """5000 sub episodes and 1000 meta episodes of the longest gridworld episodes (50 steps)."""
+    eps = [e for runs in _record("hdrqn-v2", 200).values() for e in runs]
+    sub_per_step = sum(sub.nbytes for sub, _, _ in eps) / sum(sub.num_steps for sub, _, _ in eps)
+    meta_per_episode = max(meta.nbytes for _, meta, _ in eps)
+    total = 5000 * 50 * sub_per_step + 1000 * meta_per_episode
+    assert sub_per_step < 6 * 1024
+    assert total <= 2 * 1024**3

@@ -58,6 +58,19 @@ def _owned(a: np.ndarray) -> np.ndarray:
     return a
 
 
+def _rows_checked(what: str, arrays, rows: int, expected: str) -> Dict[str, np.ndarray]:
+    """``arrays`` as a dict of numpy arrays with ``rows`` leading rows, or a ValueError."""
+    if not isinstance(arrays, dict):
+        raise ValueError(f"Episode.{what} must be a dict name -> array")
+    out = {}
+    for name, arr in arrays.items():
+        arr = np.asarray(arr)
+        if arr.ndim < 1 or arr.shape[0] != rows:
+            raise ValueError(f"Episode.{what}[{name!r}] must have {expected}, got shape {arr.shape}")
+        out[name] = arr
+    return out
+
+
 @dataclass
 class Episode:
     """One stored episode; see the module docstring for the layout.
@@ -78,18 +91,7 @@ class Episode:
                 f"got shape {self.frames.shape}"
             )
         t = self.num_steps
-        if not isinstance(self.fields, dict):
-            raise ValueError("Episode.fields must be a dict name -> (T, ...) array")
-        fields = {}
-        for name, arr in self.fields.items():
-            arr = np.asarray(arr)
-            if arr.ndim < 1 or arr.shape[0] != t:
-                raise ValueError(
-                    f"Episode.fields[{name!r}] must have T = {t} rows (frames has T + 1 = "
-                    f"{t + 1}), got shape {arr.shape}"
-                )
-            fields[name] = arr
-        self.fields = fields
+        self.fields = _rows_checked("fields", self.fields, t, f"T = {t} rows (frames has T + 1 = {t + 1})")
 
         if self.segment_starts is None:
             starts = np.zeros(1, dtype=np.int32)
@@ -111,19 +113,8 @@ class Episode:
                 )
         self.segment_starts = starts
 
-        if not isinstance(self.segment_data, dict):
-            raise ValueError("Episode.segment_data must be a dict name -> (K, ...) array")
         k = starts.shape[0]
-        seg = {}
-        for name, arr in self.segment_data.items():
-            arr = np.asarray(arr)
-            if arr.ndim < 1 or arr.shape[0] != k:
-                raise ValueError(
-                    f"Episode.segment_data[{name!r}] must have K = {k} rows (one per "
-                    f"segment), got shape {arr.shape}"
-                )
-            seg[name] = arr
-        self.segment_data = seg
+        self.segment_data = _rows_checked("segment_data", self.segment_data, k, f"K = {k} rows (one per segment)")
 
     @property
     def num_steps(self) -> int:

@@ -55,8 +55,9 @@ def check_batch(replay, batch, n):
         segs = batch.fields["segment"][i, :w]
         assert (segs == segs[0]).all()
         k = int(segs[0])
-        seg_len = int(ep.segment_lengths[k])
-        assert w == min(n, seg_len)
+        seg_end = int(ep.segment_starts[k]) + int(ep.segment_lengths[k])
+        # a window runs n steps from its random start, cut at the end of its segment
+        assert w == min(n, seg_end - int(batch.start[i]))
         assert batch.segment_data["subgoal"][i] == ep.segment_data["subgoal"][k]
         # padding is zeros
         assert not batch.frames[i, w + 1 :].any()
@@ -79,11 +80,13 @@ def test_sample_windows_respect_segments_and_alignment():
 def test_short_segment_padding_and_masks():
     replay = EpisodeReplay(5, seed=1)
     replay.add(make_episode(7, [3]))
-    batch = replay.sample(4, 8)
-    assert (batch.valid == np.array([[1, 1, 1, 0, 0, 0, 0, 0]], bool)).all()
+    batch = replay.sample(64, 8)
+    from_start = batch.start == 0
+    assert from_start.any() and (~from_start).any()
+    assert (batch.valid[from_start] == np.array([[1, 1, 1, 0, 0, 0, 0, 0]], bool)).all()
     # shorter than n // 2 = 4: every valid step carries the loss
     assert (batch.loss_mask == batch.valid).all()
-    assert (batch.frames[:, :4, 1] == [0, 1, 2, 3]).all()
+    assert (batch.frames[from_start, :4, 1] == [0, 1, 2, 3]).all()
     assert not batch.frames[:, 4:].any()
 
     b1 = replay.sample(6, 1)
@@ -95,6 +98,20 @@ def test_short_segment_padding_and_masks():
     long = b.valid.sum(1) == 6
     assert long.any()
     assert (b.loss_mask[long] == np.array([0, 0, 0, 1, 1, 1], bool)).all()
+
+
+def test_last_step_of_a_segment_reaches_the_loss_as_often_as_any_other():
+    """Windows begin at a uniformly random step; each step carries the loss in the windows
+    that start up to n/2 - 1 steps before it (fewer at a segment's start)."""
+    replay = EpisodeReplay(5, seed=3)
+    replay.add(make_episode(1, [30]))
+    counts = np.zeros(30)
+    for _ in range(300):
+        b = replay.sample(16, 8)
+        for i in range(16):
+            counts[b.fields["step"][i][b.loss_mask[i]]] += 1
+    inner, last = counts[3:29].mean(), counts[29]
+    assert last > 0.7 * inner  # the option's last step is not starved
 
 
 def test_segment_chosen_proportional_to_length():

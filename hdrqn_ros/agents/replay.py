@@ -1,11 +1,14 @@
 """Episodic experience replay for Bootstrapped Random Updates (thesis section 3.4).
 
 The replay holds whole episodes. A minibatch picks ``batch_size`` episodes uniformly at
-random (with replacement); in each it picks a segment with probability proportional to
-the segment's length (i.e. a uniformly random step's segment), then a random window of
-``min(seq_len, segment_length)`` consecutive steps inside that segment. Training starts
-every window from a zero LSTM state and puts the loss only on the window's last steps
-(``loss_mask``; the DRQN trick of thesis 3.4: the last ``n/2`` transitions).
+random (with replacement); in each it begins at a uniformly random step ("we begin at a
+random index and select a sequence of n transitions") and takes up to ``seq_len`` steps,
+cut at the end of that step's segment (shorter windows are right-padded, see ``valid``).
+Training starts every window from a zero LSTM state and puts the loss only on the
+window's last valid steps (``loss_mask``; the DRQN trick of thesis 3.4: the last ``n/2``
+transitions). Cutting rather than shifting windows at a segment's end matters: with
+windows kept whole inside the segment, the last step of an option (where the subgoal
+reward is) would reach the loss ``n/2`` times less often than a middle step.
 
 Segments are options: the sub-controller's LSTM restarts at every option, so its windows
 must never cross an option boundary. Flat and meta-controller replays store one segment
@@ -296,12 +299,13 @@ class EpisodeReplay:
         for b, e in enumerate(ep_idx):
             ep = self._episodes[int(e)]
             t_total = ep.num_steps
-            # A uniformly random step picks its segment with probability ∝ length.
-            k = int(np.searchsorted(ep.segment_starts, rng.integers(t_total), side="right")) - 1
-            seg_start = int(ep.segment_starts[k])
+            # The window begins at a uniformly random step of the episode (thesis 3.4) and
+            # is cut at the end of that step's segment, so every step, the last one of an
+            # option included, reaches the loss equally often.
+            s = int(rng.integers(t_total))
+            k = int(np.searchsorted(ep.segment_starts, s, side="right")) - 1
             seg_end = int(ep.segment_starts[k + 1]) if k + 1 < ep.num_segments else t_total
-            w = min(n, seg_end - seg_start)
-            s = seg_start + int(rng.integers(seg_end - seg_start - w + 1))
+            w = min(n, seg_end - s)
             starts[b] = s
             frames[b, : w + 1] = ep.frames[s : s + w + 1]
             for name, a in ep.fields.items():

@@ -40,37 +40,64 @@ def _controller(seq_len=4, gamma=0.9, tau=0.5, loss="mse"):
 
 
 def _episode():
-    # states 0..4 then 5; 4 steps only so every window is the whole episode
+    # frame t is the one-hot state t; the last step is terminal
     frames = _one_hot([0, 1, 2, 3, 4], 6)
     return Episode(frames=frames, fields={
         "action": np.array([0, 1, 0, 1], np.uint8),
-        "reward": np.array([100.0, -100.0, 0.5, 1.0], np.float32),  # first two steps are outside the loss
+        "reward": np.array([100.0, -100.0, 0.5, 1.0], np.float32),
         "terminal": np.array([False, False, False, True]),
         "discount": np.full(4, 0.9, np.float32)})
 
 
-def test_double_dqn_loss_matches_hand_computation():
-    ctrl = _controller()
+def _sampled_update(ctrl):
+    """Run one update and return (loss, the window it trained on)."""
+    seen = {}
+    sample = ctrl.replay.sample
+
+    def keep(*args, **kwargs):
+        seen["batch"] = sample(*args, **kwargs)
+        return seen["batch"]
+
+    ctrl.replay.sample = keep
+    loss = ctrl.update()
+    ctrl.replay.sample = sample
+    return loss, seen["batch"]
+
+
+def _expected_loss(batch, online, target, episode, td_error):
+    """Hand-computed Double DQN loss on the window's loss steps (frame t = state t)."""
+    f = episode.fields
+    steps = batch.start[0] + np.flatnonzero(batch.loss_mask[0])
+    assert len(steps) >= 1
+    errors = []
+    for t in steps:
+        q = online[t, f["action"][t]]
+        if f["terminal"][t]:
+            y = f["reward"][t]
+        else:
+            a_next = online[t + 1].argmax()  # online network picks the next action ...
+            y = f["reward"][t] + f["discount"][t] * target[t + 1, a_next]  # ... the target values it
+        errors.append(td_error(q - y))
+    return np.mean(errors)
+
+
+@pytest.mark.parametrize("loss", ["mse", "huber"])
+def test_double_dqn_loss_matches_hand_computation(loss):
+    ctrl = _controller(loss=loss)
     rng = np.random.default_rng(1)
     online = rng.normal(size=(6, 2)).astype(np.float32)
     target = rng.normal(size=(6, 2)).astype(np.float32)
-    ctrl.online.w.data = torch.tensor(online)
-    ctrl.target.w.data = torch.tensor(target)
-    ctrl.replay.add(_episode())
-    # loss only on the last n/2 = 2 steps (t = 2, 3); step 3 is terminal
-    q2 = online[2, 0]
-    a3 = online[3].argmax()  # online network picks the next action ...
-    y2 = 0.5 + 0.9 * target[3, a3]  # ... the target network values it
-    q3, y3 = online[3, 1], 1.0
-    expected = ((q2 - y2) ** 2 + (q3 - y3) ** 2) / 2
-    assert ctrl.update() == pytest.approx(expected, rel=1e-5)
-
-
-def test_huber_loss_option():
-    ctrl = _controller(loss="huber")
-    ctrl.replay.add(_episode())
-    # all Q = 0: td errors are -0.5 (step 2) and -1.0 (step 3); Huber(0.5)=0.125, Huber(1)=0.5
-    assert ctrl.update() == pytest.approx((0.125 + 0.5) / 2)
+    episode = _episode()
+    ctrl.replay.add(episode)
+    td_error = (lambda d: d * d) if loss == "mse" else (lambda d: 0.5 * d * d if abs(d) < 1 else abs(d) - 0.5)
+    starts = set()
+    for _ in range(12):
+        ctrl.online.w.data = torch.tensor(online)
+        ctrl.target.w.data = torch.tensor(target)
+        value, batch = _sampled_update(ctrl)
+        starts.add(int(batch.start[0]))
+        assert value == pytest.approx(_expected_loss(batch, online, target, episode, td_error), rel=1e-5)
+    assert len(starts) > 1  # several windows checked, the terminal step among them
 
 
 def test_soft_target_update_is_tau_interpolation():

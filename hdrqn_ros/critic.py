@@ -24,9 +24,10 @@ class CriticResult:
 class InternalCritic:
     """Domain-aware intrinsic reward.
 
-    ``goal_reward`` is given for achieving the option's subgoal; ``wrong_subgoal_penalty``
-    for achieving another subgoal (the option goes on); ``obstacle_penalty`` for hitting an
-    obstacle (the option goes on). Gridworld and four-rooms use (1, -1, -1) (eq. 4.1);
+    ``goal_reward`` is given for reaching the place of the option's subgoal (a goal's cell
+    counts also after the goal was collected: a subgoal is a place, thesis 3.5);
+    ``wrong_subgoal_penalty`` for collecting another goal (the option goes on);
+    ``obstacle_penalty`` for hitting an obstacle (the option goes on). Gridworld and four-rooms use (1, -1, -1) (eq. 4.1);
     Montezuma's Revenge uses (1, 0, 0) (eq. 4.4) and ends the option on a life loss.
     """
 
@@ -41,7 +42,7 @@ class InternalCritic:
         if subgoals.shape != step.at_subgoal.shape:
             raise ValueError(f"subgoals must have shape {step.at_subgoal.shape}, got {subgoals.shape}")
         reached = step.at_subgoal == subgoals
-        other = (step.at_subgoal >= 0) & ~reached
+        other = (step.at_subgoal >= 0) & ~reached & step.collected
         intrinsic = np.where(reached, self.goal_reward, 0.0)
         intrinsic += np.where(other, self.wrong_subgoal_penalty, 0.0)
         intrinsic += np.where(step.hit_obstacle, self.obstacle_penalty, 0.0)

@@ -11,15 +11,16 @@ from hdrqn_ros.envs.gridworld import GridWorldBatch, GridWorldEnv
 UP, DOWN, LEFT, RIGHT = 0, 1, 2, 3
 
 
-def make_step(at, hit=None, term=None, trunc=None, life=None):
+def make_step(at, hit=None, term=None, trunc=None, life=None, collected=None):
     at = np.asarray(at, dtype=np.int32)
     n = len(at)
     z = np.zeros(n, dtype=bool)
+    collected = at >= 0 if collected is None else np.asarray(collected, bool)
     return StepBatch(
         obs=np.zeros((n, 44, 44, 3), np.uint8), classical=np.zeros(n, np.float32), extrinsic=np.zeros(n, np.float32),
         terminated=z.copy() if term is None else np.asarray(term, bool),
         truncated=z.copy() if trunc is None else np.asarray(trunc, bool),
-        agent_pos=np.zeros((n, 2), np.int32), at_subgoal=at,
+        agent_pos=np.zeros((n, 2), np.int32), at_subgoal=at, collected=collected,
         hit_obstacle=z.copy() if hit is None else np.asarray(hit, bool),
         life_lost=z.copy() if life is None else np.asarray(life, bool), success=z.copy(),
     )
@@ -119,3 +120,12 @@ def test_single_env_intrinsic_agrees_with_critic(seed, subgoals, actions):
         assert info["subgoal_reached"] == res.reached[0]
         if term or trunc:
             env.reset()
+
+
+def test_walking_over_a_collected_goal_is_not_penalised_but_reaches_it_as_a_subgoal():
+    # the agent stands on goal 0's old cell (collected earlier): no penalty for option 1,
+    # and an option whose subgoal is goal 0 ends with +1 (a subgoal is a place)
+    step = make_step(at=[0, 0], collected=[False, False])
+    r = GRID_CRITIC.evaluate(step, np.array([1, 0]))
+    assert r.intrinsic.tolist() == [0.0, 1.0]
+    assert r.reached.tolist() == [False, True]

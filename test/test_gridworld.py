@@ -482,3 +482,27 @@ def test_bad_single_inputs():
         b.set_state(0, agent=(0, 0), goals=[(2, 2), (3, 3)], obstacles=[(4, 4), (5, 5)])
     with pytest.raises(ValueError, match="distinct"):
         b.set_state(0, agent=(2, 2), goals=[(2, 2), (3, 3)], obstacles=[(4, 4), (5, 5)])
+
+
+def test_a_collected_goals_cell_is_still_its_subgoal_place():
+    """Leaving and re-entering a collected goal's cell: at_subgoal names it, nothing is
+    collected, no reward; collecting an uncollected goal sets ``collected``."""
+    b = GridWorldBatch(1, view=5)
+    b.reset(seed=0)
+    b.set_state(0, agent=(3, 3), goals=[(4, 3), (8, 8)], obstacles=[(1, 9), (9, 1)])
+    s = b.step(np.array([DOWN]))  # collect blue
+    assert (s.at_subgoal[0], bool(s.collected[0]), s.extrinsic[0]) == (0, True, 1.0)
+    s = b.step(np.array([UP]))
+    assert (s.at_subgoal[0], bool(s.collected[0])) == (-1, False)
+    s = b.step(np.array([DOWN]))  # back on blue's old cell
+    assert (s.at_subgoal[0], bool(s.collected[0]), s.extrinsic[0], s.classical[0]) == (0, False, 0.0, 0.0)
+    env = GridWorldEnv(view=5)
+    env.reset(seed=0)
+    env.batch.set_state(0, agent=(3, 3), goals=[(4, 3), (8, 8)], obstacles=[(1, 9), (9, 1)])
+    env.set_subgoal(1)
+    _, _, _, _, info = env.step(DOWN)  # collecting blue while pursuing green: -1
+    assert info["intrinsic"] == -1.0 and not info["subgoal_reached"]
+    env.step(UP)
+    env.set_subgoal(0)
+    _, _, _, _, info = env.step(DOWN)  # blue's old cell as a subgoal place: +1
+    assert info["intrinsic"] == 1.0 and info["subgoal_reached"] and info["extrinsic"] == 0.0

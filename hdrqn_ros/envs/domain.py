@@ -27,7 +27,8 @@ class StepBatch:
     terminated: np.ndarray  # (N,) bool
     truncated: np.ndarray  # (N,) bool, step limit
     agent_pos: np.ndarray  # (N, 2) int32, grid (row, col) or Montezuma RAM (x, y)
-    at_subgoal: np.ndarray  # (N,) int32, subgoal achieved at this step or NO_SUBGOAL
+    at_subgoal: np.ndarray  # (N,) int32, subgoal whose place the agent is at after the step, or NO_SUBGOAL
+    collected: np.ndarray  # (N,) bool, an object was picked up at this step (a goal; the key)
     hit_obstacle: np.ndarray  # (N,) bool
     life_lost: np.ndarray  # (N,) bool
     success: np.ndarray  # (N,) bool, episode solved (meaningful when done)

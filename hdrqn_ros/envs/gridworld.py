@@ -349,13 +349,13 @@ class GridWorldBatch:
 
         hit = cell == FIRE
         is_goal = (cell >= GOAL0) & (cell < GOAL0 + self.n_goals)
-        at = np.full(N, NO_SUBGOAL, dtype=np.int32)
+        on_goal = self._goals == new[:, None]  # (N, G): a goal's cell, collected or not
+        at = np.where(on_goal.any(axis=1), on_goal.argmax(axis=1), NO_SUBGOAL).astype(np.int32)
         extrinsic = np.zeros(N, dtype=np.float32)
         if is_goal.any():
             idx = np.flatnonzero(is_goal)
             k = cell[idx].astype(np.int64) - GOAL0
             right = (k == self._n_collected[idx]) & (k == self._next_goal[idx])
-            at[idx] = k
             extrinsic[idx] = np.where(right, 1.0, 0.01)
             self._collected[idx, k] = True
             self._n_collected[idx] += 1
@@ -379,6 +379,7 @@ class GridWorldBatch:
             truncated=truncated,
             agent_pos=self._rowcol(new),
             at_subgoal=at,
+            collected=is_goal,
             hit_obstacle=hit,
             life_lost=np.zeros(N, dtype=bool),
             success=terminated & self._in_order,
@@ -397,7 +398,7 @@ class GridWorldBatch:
     def step_one(self, action):
         """The lean path of a batch of one (used by :class:`GridWorldEnv`): the same rules
         as :meth:`step`, on Python scalars. Returns ``(obs, classical, extrinsic,
-        terminated, truncated, at_subgoal, hit_obstacle, success)``."""
+        terminated, truncated, at_subgoal, collected, hit_obstacle, success)``."""
         if self.num_envs != 1:
             raise ValueError(f"step_one needs a batch of one, this one has {self.num_envs} envs")
         if type(action) is not int:
@@ -418,13 +419,14 @@ class GridWorldBatch:
         rgb[old] = PALETTE[FREE]
         rgb[new] = PALETTE[AGENT]
         self._agent[0] = new
-        at = NO_SUBGOAL
+        goals = self._goals[0]
+        at = next((g for g in range(self.n_goals) if goals[g] == new), NO_SUBGOAL)
         extrinsic = 0.0
         hit = cell == FIRE
+        collected = GOAL0 <= cell < GOAL0 + self.n_goals
         if hit:
             self._respawn_fire(0, 0 if self._fires[0, 0] == new else 1)
-        elif GOAL0 <= cell < GOAL0 + self.n_goals:
-            at = cell - GOAL0
+        elif collected:
             n = int(self._n_collected[0])
             right = at == n and at == int(self._next_goal[0])
             extrinsic = 1.0 if right else 0.01
@@ -444,8 +446,8 @@ class GridWorldBatch:
         truncated = (not terminated) and t >= self.max_steps
         self._done[0] = terminated or truncated
         cls = float(np.float32(extrinsic)) - (1.0 if hit else 0.0)
-        return (self._render_one(new), cls, float(np.float32(extrinsic)), terminated, truncated, at, hit,
-                terminated and bool(self._in_order[0]))
+        return (self._render_one(new), cls, float(np.float32(extrinsic)), terminated, truncated, at, collected,
+                hit, terminated and bool(self._in_order[0]))
 
     # ----------------------------------------------------------------- rendering
     def _render_cells(self, cell_ids: np.ndarray) -> np.ndarray:
@@ -549,10 +551,10 @@ class GridWorldEnv(gym.Env):
 
     def step(self, action):
         b = self.batch
-        obs, classical, extrinsic, terminated, truncated, at, hit, success = b.step_one(action)
+        obs, classical, extrinsic, terminated, truncated, at, collected, hit, success = b.step_one(action)
         goal_r, wrong_r, obst_r = self._crit
         reached = at == self._subgoal
-        intrinsic = goal_r if reached else (wrong_r if at >= 0 else 0.0)
+        intrinsic = goal_r if reached else (wrong_r if collected else 0.0)
         if hit:
             intrinsic += obst_r
         if reached:

@@ -313,6 +313,7 @@ class MontezumaBatch:
             truncated=truncated,
             agent_pos=self.agent_pos,
             at_subgoal=self.current_subgoal(),
+            collected=key_taken.copy(),
             hit_obstacle=np.zeros(n, bool),
             life_lost=life_lost,
             success=self.key_obtained.copy(),

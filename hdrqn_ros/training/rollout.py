@@ -125,7 +125,7 @@ class Rollout:
             self.last_sub_state[option_done] = self.sub_state[self.meta_state_index][
                 torch.as_tensor(option_done, device=self.sub_state[0].device)].cpu().numpy()
         if self.agent.meta is not None and option_done.any():
-            meta_next = self._meta_input_after(env, option_done)
+            meta_next = self._meta_input_after(env)
         record = StepRecord(obs=obs, new_option=new_option, meta_input=meta_input, subgoal=self.subgoal.copy(),
                             subgoal_image=self.subgoal_image.copy(), action=action, env=env, intrinsic=intrinsic,
                             option_done=option_done, sub_terminal=sub_terminal,
@@ -142,7 +142,8 @@ class Rollout:
             self._zero_rows(self.sub_state, done)
         return record
 
-    def _meta_input_after(self, env: StepBatch, rows: np.ndarray) -> np.ndarray:
+    def _meta_input_after(self, env: StepBatch) -> np.ndarray:
+        """(N, ...) the meta inputs after this step (read at the rows whose option ended)."""
         if self.agent.spec.meta_input == "state":
             return self.last_sub_state.copy()
         return env.obs.copy()

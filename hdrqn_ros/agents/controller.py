@@ -30,7 +30,9 @@ class Controller:
     ``net`` maps ``(B, T, ...)`` inputs to Q-values ``(B, T, n_outputs)``; ``build_input``
     assembles a sampled window into that input (e.g. observation + subgoal image).
     Replay fields used: ``action`` (int), ``reward`` (float32), ``terminal`` (bool, no
-    bootstrap) and ``discount`` (float32, gamma or gamma**k).
+    bootstrap), ``discount`` (float32, gamma or gamma**k) and, optionally,
+    ``next_invalid`` (int, -1 for none): a choice the next step may not take (the
+    meta-controller cannot pick the subgoal it stands on), left out of the target's max.
     """
 
     def __init__(self, name: str, net: nn.Module, cfg: ControllerConfig, build_input: InputBuilder,
@@ -82,7 +84,12 @@ class Controller:
         q_taken = q_all[:, :-1].gather(-1, f["action"].long().unsqueeze(-1)).squeeze(-1)
         with torch.no_grad():
             q_target_all, _ = self.target(x)
-            next_action = q_all[:, 1:].argmax(-1, keepdim=True)  # Double DQN: online picks
+            q_next = q_all[:, 1:]
+            if "next_invalid" in f:
+                invalid = f["next_invalid"].long()
+                hit = torch.arange(q_next.shape[-1], device=self.device) == invalid.unsqueeze(-1)
+                q_next = q_next.masked_fill(hit, float("-inf"))
+            next_action = q_next.argmax(-1, keepdim=True)  # Double DQN: online picks
             next_value = q_target_all[:, 1:].gather(-1, next_action).squeeze(-1)  # target values
             not_terminal = (~f["terminal"].bool()).float()
             y = f["reward"].float() + f["discount"].float() * not_terminal * next_value

@@ -43,6 +43,7 @@ class _Open:
     meta_reward: list = field(default_factory=list)
     meta_terminal: list = field(default_factory=list)
     meta_discount: list = field(default_factory=list)
+    meta_next_invalid: list = field(default_factory=list)
     classical: float = 0.0
     extrinsic: float = 0.0
     intrinsic: float = 0.0
@@ -83,6 +84,7 @@ class EpisodeRecorder:
                 ep.meta_reward.append(rec.option_extrinsic[i])
                 ep.meta_terminal.append(env.terminated[i])
                 ep.meta_discount.append(self.meta_gamma ** k if self.smdp_discount else self.meta_gamma)
+                ep.meta_next_invalid.append(env.at_subgoal[i])  # the place the next decision starts from
             if env.done[i]:
                 finished.append(self._close(i, ep, rec))
                 self.open[i] = _Open()
@@ -105,7 +107,8 @@ class EpisodeRecorder:
                 fields={"action": np.asarray(ep.meta_action, np.uint8),
                         "reward": np.asarray(ep.meta_reward, np.float32),
                         "terminal": np.asarray(ep.meta_terminal, bool),
-                        "discount": np.asarray(ep.meta_discount, np.float32)},
+                        "discount": np.asarray(ep.meta_discount, np.float32),
+                        "next_invalid": np.asarray(ep.meta_next_invalid, np.int8)},
             )
         stats = EpisodeStats(steps=t, classical=ep.classical, extrinsic=ep.extrinsic, intrinsic=ep.intrinsic,
                              success=bool(env.success[i]), options=len(ep.segment_starts))

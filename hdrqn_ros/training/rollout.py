@@ -14,14 +14,24 @@ import torch
 
 from hdrqn_ros.agents.algorithms import Agent
 from hdrqn_ros.agents.networks import lstm_state_size
-from hdrqn_ros.envs.domain import StepBatch
+from hdrqn_ros.envs.domain import NO_SUBGOAL, StepBatch
 
 
-def epsilon_greedy(q: np.ndarray, eps: float, rng: np.random.Generator) -> np.ndarray:
-    """(B, n) Q-values -> (B,) int64 actions: random with probability ``eps``, else argmax."""
-    greedy = q.argmax(axis=1)
-    explore = rng.random(len(q)) < eps
-    return np.where(explore, rng.integers(0, q.shape[1], size=len(q)), greedy)
+def epsilon_greedy(q: np.ndarray, eps: float, rng: np.random.Generator,
+                   invalid: np.ndarray | None = None) -> np.ndarray:
+    """(B, n) Q-values -> (B,) int64 actions: random with probability ``eps``, else argmax.
+
+    ``invalid`` (B,) int: one choice per row that may not be taken (-1: none).
+    """
+    b, n = q.shape
+    explore = rng.random(b) < eps
+    if invalid is None:
+        return np.where(explore, rng.integers(0, n, size=b), q.argmax(axis=1))
+    masked = np.where(np.arange(n) == invalid[:, None], -np.inf, q)
+    has = invalid >= 0
+    r = rng.integers(0, n - has.astype(np.int64), size=b)  # uniform over the valid choices
+    r += has & (r >= invalid)
+    return np.where(explore, r, masked.argmax(axis=1))
 
 
 @dataclass
@@ -63,6 +73,9 @@ class Rollout:
         self.last_sub_state = np.zeros((self.n, lstm_state_size), np.float32)
         self.option_extrinsic = np.zeros(self.n, np.float32)
         self.option_steps = np.zeros(self.n, np.int64)
+        # the subgoal whose place each agent stands on: not a valid next subgoal (a subgoal
+        # is reached "from the other subgoals", thesis 4.1.1)
+        self.place = np.full(self.n, NO_SUBGOAL, np.int64)
 
     def _meta_input(self, rows: np.ndarray) -> np.ndarray:
         if self.agent.spec.meta_input == "state":
@@ -92,7 +105,7 @@ class Rollout:
         if new_state is not None:
             for t, new in zip(self.meta_state, new_state):
                 t[torch.as_tensor(idx, device=t.device)] = new
-        self.subgoal[idx] = epsilon_greedy(q, eps_meta, rng)
+        self.subgoal[idx] = epsilon_greedy(q, eps_meta, rng, invalid=self.place[idx])
         self.subgoal_image[idx] = self.batch.subgoal_images(self.subgoal)[idx]
         self._zero_rows(self.sub_state, rows)  # line 13: h^S <- 0 for every new option
         self.option_extrinsic[idx] = 0.0
@@ -132,9 +145,11 @@ class Rollout:
                             option_extrinsic=self.option_extrinsic.copy(), option_steps=self.option_steps.copy(),
                             meta_next_input=meta_next)
         self.need_meta |= option_done
+        self.place = env.at_subgoal.astype(np.int64)
         done = env.done
         self.obs = env.obs
         if done.any():
+            self.place[done] = NO_SUBGOAL
             env.obs = env.obs.copy()  # keep the final observations: reset_where may reuse buffers
             self.obs = self.batch.reset_where(done)
             self.last_sub_state[done] = 0.0

@@ -160,3 +160,36 @@ def test_table_4_7_defaults():
     assert cfg.sub.lr == 1e-4
     assert cfg.update_every == 5
     assert (cfg.sub.seq_len, cfg.meta.seq_len) == (8, 2)  # experiment 3's n^S, n^M
+
+
+def test_epsilon_greedy_never_takes_the_invalid_choice():
+    from hdrqn_ros.training.rollout import epsilon_greedy
+
+    rng = np.random.default_rng(0)
+    q = np.tile(np.array([[0.0, 5.0, 1.0]]), (3000, 1))
+    invalid = np.tile(np.array([1, -1, 2]), 1000)
+    for eps in (0.0, 1.0):
+        a = epsilon_greedy(q, eps, rng, invalid=invalid)
+        assert not (a == invalid).any()
+        if eps == 0.0:  # greedy: best valid choice
+            assert a.tolist()[:3] == [2, 1, 1]
+        else:  # random: uniform over the valid choices
+            counts = np.bincount(a[invalid == 1], minlength=3)
+            assert counts[1] == 0 and abs(counts[0] - counts[2]) < 150
+
+
+def test_target_max_skips_the_next_invalid_choice():
+    ctrl = _controller(seq_len=1)
+    episode = _episode()
+    episode.fields["next_invalid"] = np.array([1, 0, 1, -1], np.int8)
+    ctrl.replay.add(episode)
+    online = np.array([[0, 0], [0, 9], [3, 0], [0, 0], [0, 0], [0, 0]], np.float32)  # argmax at state 1 is 1
+    target = np.arange(12, dtype=np.float32).reshape(6, 2)
+    for _ in range(20):
+        ctrl.online.w.data = torch.tensor(online)
+        ctrl.target.w.data = torch.tensor(target)
+        value, batch = _sampled_update(ctrl)
+        if batch.start[0] == 0:  # step 0 -> state 1 where choice 1 is invalid: target values choice 0
+            assert value == pytest.approx((online[0, 0] - (100.0 + 0.9 * target[1, 0])) ** 2, rel=1e-6)
+            return
+    pytest.fail("step 0 was never sampled")

@@ -224,3 +224,15 @@ def test_thesis_replay_configuration_fits_in_2_gib():
     total = 5000 * 50 * sub_per_step + 1000 * meta_per_episode
     assert sub_per_step < 6 * 1024
     assert total <= 2 * 1024**3
+
+
+def test_meta_never_picks_the_subgoal_it_stands_on():
+    picked_own_place, decisions_at_a_place = 0, 0
+    for eps in _record("hdrqn-v2", 300).values():
+        for _, meta, _ in eps:
+            prev_place = meta.fields["next_invalid"][:-1]
+            nxt = meta.fields["action"][1:]
+            decisions_at_a_place += int((prev_place >= 0).sum())
+            picked_own_place += int(((prev_place >= 0) & (nxt == prev_place)).sum())
+            assert meta.fields["next_invalid"].dtype == np.int8
+    assert decisions_at_a_place >= 3 and picked_own_place == 0

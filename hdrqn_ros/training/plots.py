@@ -68,8 +68,9 @@ def plot_runs(runs: list[Path], out: Path, window: int = 200, labels: dict[str, 
     for ax, (key, title) in zip(axes.flat, PANELS):
         for i, (label, tables) in enumerate(groups.items()):
             n = min(len(t["episode"]) for t in tables)
-            curves = np.stack([moving_average(t[key][:n], window) for t in tables])
-            x = tables[0]["episode"][:n]
+            skip = min(window // 10, n - 1)  # the first few averages are over a handful of episodes
+            curves = np.stack([moving_average(t[key][:n], window)[skip:] for t in tables])
+            x = tables[0]["episode"][skip:n]
             color = f"C{i}"
             ax.plot(x, curves.mean(0), color=color, label=f"{label} (n={len(tables)})")
             if len(tables) > 1:

@@ -62,9 +62,11 @@ def check_batch(replay, batch, n):
         # padding is zeros
         assert not batch.frames[i, w + 1 :].any()
         assert all(not a[i, w:].any() for a in batch.fields.values())
-        # loss on the last max(1, n // 2) valid steps
+        # loss on the last max(1, n // 2) valid steps, or on all of them when the window
+        # begins at its segment's start (the zero LSTM state is then the true one)
         expect = np.zeros(n, bool)
-        expect[max(0, w - max(1, n // 2)) : w] = True
+        from_start = int(batch.start[i]) == int(ep.segment_starts[k])
+        expect[0 if from_start else max(0, w - max(1, n // 2)) : w] = True
         assert (batch.loss_mask[i] == expect).all()
 
 
@@ -95,7 +97,7 @@ def test_short_segment_padding_and_masks():
 
     replay.add(make_episode(8, [10]))
     b = replay.sample(64, 6)
-    long = b.valid.sum(1) == 6
+    long = (b.valid.sum(1) == 6) & (b.start > 0)  # not at the segment start (see below)
     assert long.any()
     assert (b.loss_mask[long] == np.array([0, 0, 0, 1, 1, 1], bool)).all()
 
@@ -233,3 +235,16 @@ def test_property_random_layouts(layouts, n, capacity, seed):
     assert len(replay) == len(kept)
     assert replay.num_steps == sum(map(sum, kept))
     check_batch(replay, replay.sample(6, n), n)
+
+
+def test_first_step_of_each_segment_is_trained():
+    """With n = 2 (the meta-controller's n^M) the first step of an episode of several
+    steps must still carry the loss in windows that begin there."""
+    replay = EpisodeReplay(5, seed=0)
+    replay.add(make_episode(1, [3]))
+    counts = np.zeros(3)
+    for _ in range(200):
+        b = replay.sample(8, 2)
+        for i in range(8):
+            counts[b.fields["step"][i][b.loss_mask[i]]] += 1
+    assert counts[0] > 0.2 * counts.sum() / 3

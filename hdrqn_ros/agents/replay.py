@@ -6,7 +6,11 @@ random index and select a sequence of n transitions") and takes up to ``seq_len`
 cut at the end of that step's segment (shorter windows are right-padded, see ``valid``).
 Training starts every window from a zero LSTM state and puts the loss only on the
 window's last valid steps (``loss_mask``; the DRQN trick of thesis 3.4: the last ``n/2``
-transitions). Cutting rather than shifting windows at a segment's end matters: with
+transitions) — except for a window that begins where its segment (option, episode)
+begins: there the zero state is the true one, and all its steps carry the loss.
+Without that exception the first step of every segment longer than ``n/2`` steps would
+never be trained (with the meta-controller's ``n = 2``: its first decision of every
+episode of two or more options). Cutting rather than shifting windows at a segment's end matters: with
 windows kept whole inside the segment, the last step of an option (where the subgoal
 reward is) would reach the loss ``n/2`` times less often than a middle step.
 
@@ -306,6 +310,7 @@ class EpisodeReplay:
             k = int(np.searchsorted(ep.segment_starts, s, side="right")) - 1
             seg_end = int(ep.segment_starts[k + 1]) if k + 1 < ep.num_segments else t_total
             w = min(n, seg_end - s)
+            from_segment_start = s == int(ep.segment_starts[k])
             starts[b] = s
             frames[b, : w + 1] = ep.frames[s : s + w + 1]
             for name, a in ep.fields.items():
@@ -313,6 +318,8 @@ class EpisodeReplay:
             for name, a in ep.segment_data.items():
                 seg_data[name][b] = a[k]
             valid[b, :w] = True
-            loss_mask[b, max(0, w - int(loss_len)) : w] = True
+            # A window that begins where its segment begins starts from the true (zero) LSTM
+            # state, so all its steps carry the loss; otherwise only the last loss_len do.
+            loss_mask[b, 0 if from_segment_start else max(0, w - int(loss_len)) : w] = True
 
         return SequenceBatch(frames, fields, seg_data, valid, loss_mask, ep_idx, starts)

@@ -27,7 +27,8 @@ def tiny(**overrides):
     return build_config([], **{**base, **overrides})
 
 
-def _record(algo: str, steps: int, seed: int = 7):
+def _record(algo: str, steps: int, seed: int = 7, eps: float = 0.5):
+    torch.manual_seed(seed)  # the networks' initial weights
     cfg = build_config([], algo=algo)
     agent = build_agent(cfg)
     rollout = Rollout(make_batch(ENV, 2), agent, seed=seed)
@@ -35,7 +36,7 @@ def _record(algo: str, steps: int, seed: int = 7):
     rng = np.random.default_rng(0)
     episodes = {0: [], 1: []}
     for _ in range(steps):
-        for i, sub, meta, stats in rec.add(rollout.step(0.5, 0.5, rng)):
+        for i, sub, meta, stats in rec.add(rollout.step(eps, eps, rng)):
             episodes[i].append((sub, meta, stats))
     return episodes
 
@@ -228,7 +229,7 @@ def test_thesis_replay_configuration_fits_in_2_gib():
 
 def test_meta_never_picks_the_subgoal_it_stands_on():
     picked_own_place, decisions_at_a_place = 0, 0
-    for eps in _record("hdrqn-v2", 300).values():
+    for eps in _record("hdrqn-v2", 1500, eps=1.0).values():  # a random walk reaches subgoals
         for _, meta, _ in eps:
             prev_place = meta.fields["next_invalid"][:-1]
             nxt = meta.fields["action"][1:]

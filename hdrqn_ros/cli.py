@@ -41,7 +41,7 @@ def _add_train(sub) -> None:
                    help="YAML config (repeatable; later files override earlier ones; flags override files)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override any config key, e.g. --set sub.seq_len=12 --set meta.epsilon.steps=20000")
-    p.add_argument("--seed", type=int)
+    p.add_argument("--seed", type=int, help="seed of environments, networks and exploration (default 0)")
     p.add_argument("--num-envs", type=int, help="environments stepped together (default 16)")
     p.add_argument("--view", help="observation window: 3, 5, 11 or full (gridworld domains)")
     p.add_argument("--device", help="torch device, e.g. cpu or cuda")
@@ -69,7 +69,7 @@ def _add_plot(sub) -> None:
 
 
 def _add_envs(sub) -> None:
-    sub.add_parser("envs", help="list the environment ids and their spaces")
+    sub.add_parser("envs", help="list the environment ids and their default options")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -102,16 +102,22 @@ def test_short_segment_padding_and_masks():
     assert (b.loss_mask[long] == np.array([0, 0, 0, 1, 1, 1], bool)).all()
 
 
+def loss_counts(seg_lengths, seq_len, draws, batch=8, seed=0):
+    """How often each step of one episode carries the loss over ``draws`` minibatches."""
+    replay = EpisodeReplay(5, seed=seed)
+    replay.add(make_episode(1, seg_lengths))
+    counts = np.zeros(int(sum(seg_lengths)))
+    for _ in range(draws):
+        b = replay.sample(batch, seq_len)
+        for i in range(batch):
+            counts[b.fields["step"][i][b.loss_mask[i]]] += 1
+    return counts
+
+
 def test_last_step_of_a_segment_reaches_the_loss_as_often_as_any_other():
     """Windows begin at a uniformly random step; each step carries the loss in the windows
     that start up to n/2 - 1 steps before it (fewer at a segment's start)."""
-    replay = EpisodeReplay(5, seed=3)
-    replay.add(make_episode(1, [30]))
-    counts = np.zeros(30)
-    for _ in range(300):
-        b = replay.sample(16, 8)
-        for i in range(16):
-            counts[b.fields["step"][i][b.loss_mask[i]]] += 1
+    counts = loss_counts([30], 8, 300, batch=16, seed=3)
     inner, last = counts[3:29].mean(), counts[29]
     assert last > 0.7 * inner  # the option's last step is not starved
 
@@ -240,11 +246,5 @@ def test_property_random_layouts(layouts, n, capacity, seed):
 def test_first_step_of_each_segment_is_trained():
     """With n = 2 (the meta-controller's n^M) the first step of an episode of several
     steps must still carry the loss in windows that begin there."""
-    replay = EpisodeReplay(5, seed=0)
-    replay.add(make_episode(1, [3]))
-    counts = np.zeros(3)
-    for _ in range(200):
-        b = replay.sample(8, 2)
-        for i in range(8):
-            counts[b.fields["step"][i][b.loss_mask[i]]] += 1
+    counts = loss_counts([3], 2, 200)
     assert counts[0] > 0.2 * counts.sum() / 3

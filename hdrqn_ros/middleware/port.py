@@ -1,0 +1,122 @@
+"""The middleware port: the little that nodes need from ROS 2.
+
+Two backends implement it with the same behaviour, so one node code base runs on both:
+:mod:`hdrqn_ros.middleware.rclpy_backend` (a ROS 2 Jazzy system, ``import rclpy`` works)
+and :mod:`hdrqn_ros.middleware.cyclone` (PyPI ``cyclonedds``, speaking ROS 2's wire
+conventions, used everywhere else and by the tests). Nodes never import either backend;
+they get a :class:`Node` from :func:`hdrqn_ros.middleware.open_middleware`.
+
+Message types are named as in ROS 2 (``"sensor_msgs/msg/Image"``); :meth:`Node.msg`
+returns the backend's class for a name. Both backends' classes take keyword arguments
+named like the ROS fields. Array fields accept numpy arrays; read them back through
+:func:`hdrqn_ros.middleware.messages.as_array` (rclpy gives ``array.array``, the Cyclone
+backend numpy arrays).
+"""
+from __future__ import annotations
+
+import logging
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, Callable, Protocol
+
+
+@dataclass(frozen=True)
+class QoS:
+    """The QoS settings we use; ``depth`` is the keep-last history depth (samples)."""
+
+    depth: int = 10
+    reliable: bool = True
+    transient_local: bool = False
+
+
+DEFAULT_QOS = QoS()
+"""ROS 2's default (``rclpy.qos.qos_profile_default``): reliable, volatile, keep-last 10."""
+LATCHED_QOS = QoS(depth=1, transient_local=True)
+"""Reliable, transient-local, keep-last 1: late joiners get the last sample (weights, status)."""
+SENSOR_QOS = QoS(depth=5, reliable=False)
+"""``qos_profile_sensor_data``: best effort, volatile, keep-last 5 (costmaps from Nav2)."""
+
+
+class Publisher(Protocol):
+    def publish(self, msg: Any) -> None: ...
+
+
+class Node(ABC):
+    """One ROS 2 node: publishers, subscriptions, timers, parameters and a logger.
+
+    Topic names are resolved like ROS 2 does (relative names get the node's namespace,
+    ``~`` the node's name, remappings from ``--ros-args -r`` apply)."""
+
+    name: str
+    namespace: str
+
+    @property
+    def fully_qualified_name(self) -> str:
+        return f"{self.namespace.rstrip('/')}/{self.name}"
+
+    @abstractmethod
+    def msg(self, type_name: str) -> type:
+        """The message class for ``type_name`` (``"pkg/msg/Type"``)."""
+
+    @abstractmethod
+    def create_publisher(self, type_name: str, topic: str, qos: QoS = DEFAULT_QOS) -> Publisher: ...
+
+    @abstractmethod
+    def create_subscription(self, type_name: str, topic: str, callback: Callable[[Any], None],
+                            qos: QoS = DEFAULT_QOS) -> Any:
+        """``callback(msg)`` runs on the thread that spins the middleware."""
+
+    @abstractmethod
+    def create_timer(self, period_s: float, callback: Callable[[], None]) -> Any:
+        """``callback()`` every ``period_s`` seconds (wall time) on the spinning thread."""
+
+    @abstractmethod
+    def declare_parameters(self, defaults: dict[str, Any]) -> dict[str, Any]:
+        """Declare parameters with their defaults; returns their values after overrides
+        from ``--ros-args -p name:=value`` and ``--params-file``. A value whose type differs
+        from the default's raises :class:`ParameterError`."""
+
+    @property
+    @abstractmethod
+    def logger(self) -> logging.Logger: ...
+
+    @abstractmethod
+    def resolve_topic(self, topic: str) -> str:
+        """The fully qualified name ``topic`` resolves to (after remapping)."""
+
+    @abstractmethod
+    def destroy(self) -> None: ...
+
+
+class Middleware(ABC):
+    """One process's connection to the ROS 2 graph (an rclpy context or a DDS participant)."""
+
+    backend: str
+
+    @abstractmethod
+    def create_node(self, name: str, namespace: str = "") -> Node:
+        """A node; ``--ros-args -r __node:=`` / ``__ns:=`` given to the process override
+        ``name`` / ``namespace``."""
+
+    @abstractmethod
+    def spin(self, until: Callable[[], bool] | None = None, timeout_s: float | None = None) -> None:
+        """Run callbacks and timers on this thread until :meth:`shutdown`, ``until()`` is
+        true or ``timeout_s`` passed."""
+
+    @abstractmethod
+    def shutdown(self) -> None:
+        """Destroy all nodes and leave the graph; safe to call twice and from signal handlers' aftermath."""
+
+    def __enter__(self) -> "Middleware":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.shutdown()
+
+
+class ParameterError(ValueError):
+    """A parameter override of the wrong type, or a parameters file that cannot be used."""
+
+
+class RosArgsError(ValueError):
+    """Malformed ``--ros-args`` (unknown flag, ``-p`` without ``name:=value``, ...)."""

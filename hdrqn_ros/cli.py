@@ -116,7 +116,7 @@ def cmd_train(args) -> int:
 def cmd_eval(args) -> int:
     from hdrqn_ros.config import TrainConfig
     from hdrqn_ros.training.checkpoint import load_checkpoint
-    from hdrqn_ros.training.trainer import build_agent, evaluate
+    from hdrqn_ros.training.learner import build_agent, evaluate
 
     if args.episodes < 1:
         raise UsageError(f"--episodes must be >= 1, got {args.episodes}")

@@ -34,7 +34,7 @@ from cyclonedds.util import duration
 
 from hdrqn_ros.middleware.messages import message_class
 from hdrqn_ros.middleware.port import DEFAULT_QOS, Middleware, Node, QoS
-from hdrqn_ros.middleware.ros_args import RosArgs, check_parameter_type, remap_and_resolve, split_ros_args
+from hdrqn_ros.middleware.ros_args import check_parameter_type, remap_and_resolve, split_ros_args
 
 LOOPBACK = "lo"
 MAX_TAKE = 64

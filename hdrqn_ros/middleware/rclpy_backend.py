@@ -28,6 +28,8 @@ from hdrqn_ros.middleware.port import (DEFAULT_QOS, Middleware, Node, ParameterE
                                        RosArgsError)
 
 _SPIN_STEP_S = 0.05
+_RCUTILS_METHODS = ((logging.CRITICAL, "fatal"), (logging.ERROR, "error"), (logging.WARNING, "warning"),
+                    (logging.INFO, "info"), (logging.NOTSET, "debug"))
 
 
 def rclpy_available() -> bool:
@@ -68,17 +70,8 @@ class _RcutilsHandler(logging.Handler):
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
-            text = self.format(record)  # applies printf-style args, appends tracebacks
-            if record.levelno >= logging.CRITICAL:
-                self._ros_logger.fatal(text)
-            elif record.levelno >= logging.ERROR:
-                self._ros_logger.error(text)
-            elif record.levelno >= logging.WARNING:
-                self._ros_logger.warning(text)
-            elif record.levelno >= logging.INFO:
-                self._ros_logger.info(text)
-            else:
-                self._ros_logger.debug(text)
+            method = next(m for level, m in _RCUTILS_METHODS if record.levelno >= level)
+            getattr(self._ros_logger, method)(self.format(record))  # format: printf args, tracebacks
         except Exception:
             self.handleError(record)
 
@@ -90,8 +83,9 @@ class RclpyNode(Node):
         self._node = node
         self.name = node.get_name()  # after any __node / __ns remapping
         self.namespace = node.get_namespace()
-        # A Logger outside logging's registry, so nodes of equal names do not share handlers.
-        self._logger = logging.Logger(f"hdrqn_ros.{self.fully_qualified_name}", logging.DEBUG)
+        # A Logger outside logging's registry: nodes of equal names do not share handlers, and
+        # records reach rcutils (console, /rosout) once, not also through the root logger.
+        self._logger = logging.Logger(f"hdrqn.{node.get_logger().name}", logging.DEBUG)
         self._logger.propagate = False
         self._logger.addHandler(_RcutilsHandler(node.get_logger()))
         self._destroyed = False
@@ -109,6 +103,8 @@ class RclpyNode(Node):
 
     def create_timer(self, period_s: float, callback: Callable[[], None]) -> Any:
         """A timer on the steady clock: wall time as the port says, even with ``use_sim_time``."""
+        if period_s <= 0:
+            raise ValueError(f"timer period must be > 0 s, got {period_s}")
         return self._node.create_timer(period_s, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def declare_parameters(self, defaults: dict[str, Any]) -> dict[str, Any]:
@@ -172,16 +168,19 @@ class RclpyMiddleware(Middleware):
         return node
 
     def spin(self, until: Callable[[], bool] | None = None, timeout_s: float | None = None) -> None:
+        """Spin the executor in steps of at most 50 ms; returns early if the context is shut down."""
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         try:
             while self._context.ok() and not (until is not None and until()):
-                if deadline is not None and time.monotonic() >= deadline:
+                step = _SPIN_STEP_S if deadline is None else min(_SPIN_STEP_S, deadline - time.monotonic())
+                if step <= 0:
                     return
-                self._executor.spin_once(timeout_sec=_SPIN_STEP_S)
+                self._executor.spin_once(timeout_sec=step)
         except ExternalShutdownException:  # the context was shut down elsewhere (SIGINT)
             return
 
     def shutdown(self) -> None:
+        """Destroy the nodes, stop the executor and shut the context down; safe to call twice."""
         if self._closed:
             return
         self._closed = True

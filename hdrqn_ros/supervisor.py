@@ -1,0 +1,258 @@
+"""Process supervisor behind ``hdrqn up``: runs a node graph as plain OS processes.
+
+Generic: it knows only :class:`ProcessSpec` (name, argv, respawn/required policy).
+Every child runs in its own session/process group, so a terminal Ctrl-C reaches
+only the supervisor, which then stops each group with SIGINT -> SIGTERM -> SIGKILL
+(signals hit the child *and* anything it spawned).
+
+Bounds: state is O(number of specs) -- one current Popen, one exit code and one
+restart counter per process (an exited Popen is replaced, never accumulated);
+respawns are rate-limited by ``respawn_delay_s`` and only counted; log files are
+appended to (one per process, growth = child output; rotate externally);
+``stop()`` takes at most ``stop_timeout_s + min(1, stop_timeout_s/2) + 1`` s;
+the TTY status line is truncated to the terminal width.
+"""
+from __future__ import annotations
+
+import atexit
+import os
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable
+
+_LIVE: set[subprocess.Popen] = set()  # children not yet reaped (atexit safety net)
+
+
+def _killpg(pid: int, sig: int) -> None:
+    try:
+        os.killpg(pid, sig)
+    except (ProcessLookupError, PermissionError):
+        pass
+
+
+@atexit.register
+def _kill_leftovers() -> None:
+    """Safety net: SIGKILL the process group of every child no stop() reaped."""
+    for p in list(_LIVE):
+        if p.poll() is None:
+            _killpg(p.pid, signal.SIGKILL)
+            try:
+                p.wait(timeout=1.0)
+            except subprocess.TimeoutExpired:
+                pass
+        _LIVE.discard(p)
+
+
+@dataclass(frozen=True)
+class ProcessSpec:
+    """One supervised process (like a ROS 2 launch ``Node`` action)."""
+
+    name: str                    # e.g. "group0/environment" (status line, log file name)
+    argv: list[str]              # command to run
+    respawn: bool = False        # restart after any exit while not stopping
+    respawn_delay_s: float = 1.0
+    required: bool = False       # its (non-respawned) exit stops everything
+
+
+class Supervisor:
+    """Start, watch, respawn and stop a set of processes.
+
+    ``env`` is merged over ``os.environ`` (plus ``PYTHONUNBUFFERED=1`` by default so
+    logs are live). ``status`` returns an extra string for the status line.
+    """
+
+    def __init__(self, specs: Iterable[ProcessSpec], env: dict[str, str] | None = None,
+                 log_dir: Path | None = None, status: Callable[[], str] | None = None,
+                 stop_timeout_s: float = 5.0):
+        self.specs: dict[str, ProcessSpec] = {}
+        for s in specs:
+            if s.name in self.specs:
+                raise ValueError(f"duplicate process name {s.name!r}")
+            self.specs[s.name] = s
+        self.env = dict(os.environ)
+        self.env.setdefault("PYTHONUNBUFFERED", "1")
+        self.env.update(env or {})
+        self.log_dir = Path(log_dir) if log_dir is not None else None
+        self.status = status
+        self.stop_timeout_s = float(stop_timeout_s)
+        self.restarts: dict[str, int] = {n: 0 for n in self.specs}
+        self.returncodes: dict[str, int | None] = {n: None for n in self.specs}
+        self._procs: dict[str, subprocess.Popen] = {}
+        self._respawn_at: dict[str, float] = {}   # name -> monotonic time of next start
+        self._required_exit: tuple[str, int] | None = None
+        self._signal: int | None = None
+        self._started = self._stopped = False
+
+    @property
+    def pids(self) -> dict[str, int]:
+        """Pids of the processes running as of the last poll()."""
+        return {n: p.pid for n, p in self._procs.items() if p.returncode is None}
+
+    def log_path(self, name: str) -> Path | None:
+        return None if self.log_dir is None else self.log_dir / (name.replace("/", "_") + ".log")
+
+    def _spawn(self, name: str) -> None:
+        spec, out = self.specs[name], None
+        if self.log_dir is not None:
+            self.log_dir.mkdir(parents=True, exist_ok=True)
+            out = open(self.log_path(name), "ab")
+            out.write(f"=== {time.strftime('%Y-%m-%d %H:%M:%S')} start {name}: "
+                      f"{shlex.join(spec.argv)}\n".encode())
+            out.flush()
+        # stop() relies on SIGINT, but an inherited SIG_IGN (e.g. `hdrqn up &` in a script)
+        # survives exec; a handled signal is reset to default, so swap in a no-op handler.
+        swap = (threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGINT) == signal.SIG_IGN)
+        if swap:
+            signal.signal(signal.SIGINT, lambda *_: None)
+        try:
+            p = subprocess.Popen(spec.argv, env=self.env, stdin=subprocess.DEVNULL, stdout=out,
+                                 stderr=subprocess.STDOUT if out else None, start_new_session=True)
+        finally:
+            if swap:
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+            if out is not None:
+                out.close()  # the child holds its own copy of the descriptor
+        self._procs[name] = p
+        self.returncodes[name] = None
+        _LIVE.add(p)
+
+    def _reap(self, name: str, p: subprocess.Popen) -> None:
+        self.returncodes[name] = p.returncode
+        _LIVE.discard(p)
+        _killpg(p.pid, signal.SIGKILL)  # stragglers the leader left in its group
+
+    def start(self) -> None:
+        """Start every process (each in a new session); on failure stop those started."""
+        if self._started:
+            return
+        self._started = True
+        try:
+            for name in self.specs:
+                self._spawn(name)
+        except BaseException:
+            self.stop()
+            raise
+
+    def poll(self) -> None:
+        """Reap exited children, schedule/perform respawns, note a required exit."""
+        now = time.monotonic()
+        for name, p in list(self._procs.items()):
+            if p.returncode is None and p.poll() is not None:
+                self._reap(name, p)
+                spec = self.specs[name]
+                if self._stopped:
+                    continue
+                if spec.respawn:
+                    self._respawn_at[name] = now + spec.respawn_delay_s
+                elif spec.required and self._required_exit is None:
+                    self._required_exit = (name, p.returncode)
+        for name, t in list(self._respawn_at.items()):
+            if now >= t and not self._stopped:
+                del self._respawn_at[name]
+                try:
+                    self._spawn(name)
+                except OSError as e:  # e.g. EMFILE: retry later, never busy-loop
+                    print(f"[supervisor] respawn of {name} failed: {e}", file=sys.stderr)
+                    self._respawn_at[name] = now + self.specs[name].respawn_delay_s
+                    continue
+                self.restarts[name] += 1
+
+    def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
+        """Send ``sig`` to the process group of ``name`` (fault injection)."""
+        p = self._procs[name]
+        if p.returncode is None:
+            _killpg(p.pid, sig)
+
+    def _alive(self) -> list[tuple[str, subprocess.Popen]]:
+        return [(n, p) for n, p in self._procs.items() if p.returncode is None]
+
+    def stop(self) -> dict[str, int | None]:
+        """SIGINT all groups, wait ``stop_timeout_s``, SIGTERM, wait, SIGKILL. Idempotent."""
+        if not self._stopped:
+            self._stopped = True
+            self._respawn_at.clear()
+            grace = (self.stop_timeout_s, min(1.0, self.stop_timeout_s / 2), 1.0)
+            for sig, wait in zip((signal.SIGINT, signal.SIGTERM, signal.SIGKILL), grace):
+                for _, p in self._alive():
+                    _killpg(p.pid, sig)
+                deadline = time.monotonic() + wait
+                while True:
+                    for n, p in self._alive():
+                        if p.poll() is not None:
+                            self._reap(n, p)
+                    if not self._alive() or time.monotonic() >= deadline:
+                        break
+                    time.sleep(0.02)
+                if not self._alive():
+                    break
+        return dict(self.returncodes)
+
+    def status_line(self) -> str:
+        """One line: per-process state (up/exited/respawning, restarts) + status()."""
+        parts = []
+        for n in self.specs:
+            p = self._procs.get(n)
+            st = ("respawning" if n in self._respawn_at else "not started" if p is None
+                  else f"up pid={p.pid}" if p.returncode is None else f"exited rc={p.returncode}")
+            parts.append(f"{n}: {st}" + (f" restarts={self.restarts[n]}" if self.restarts[n] else ""))
+        line = "[supervisor] " + " | ".join(parts)
+        if self.status is not None:
+            try:
+                line += " || " + self.status()
+            except Exception as e:  # a broken status callback must not kill the graph
+                line += f" || status error: {e!r}"
+        return line
+
+    def run(self, until: Callable[[], bool] | None = None, refresh_s: float = 0.5) -> int:
+        """Supervise until ``until()``, a required exit, all exited, or SIGINT/SIGTERM.
+
+        Always calls stop(). Returns 0, 1 (a required process exited with rc != 0)
+        or 128+signal (130 for Ctrl-C, 143 for SIGTERM).
+        """
+        def on_signal(signum, _frame):
+            self._signal = self._signal or signum
+
+        old = {}
+        if threading.current_thread() is threading.main_thread():
+            for s in (signal.SIGINT, signal.SIGTERM):
+                old[s] = signal.signal(s, on_signal)
+        tty = sys.stdout.isatty()
+        try:
+            self.start()
+            next_line = 0.0
+            while True:
+                self.poll()
+                if (self._signal or self._required_exit or (until is not None and until())
+                        or (not self._respawn_at and not self._alive())):
+                    break
+                now = time.monotonic()
+                if now >= next_line:
+                    next_line = now + (refresh_s if tty else 5.0)
+                    if tty:
+                        width = shutil.get_terminal_size().columns
+                        sys.stdout.write("\r" + self.status_line()[: width - 1] + "\x1b[K")
+                        sys.stdout.flush()
+                    else:
+                        print(self.status_line(), flush=True)
+                time.sleep(min(refresh_s, 0.1))
+        except KeyboardInterrupt:
+            self._signal = self._signal or signal.SIGINT
+        finally:
+            self.stop()  # our handlers stay installed so a 2nd Ctrl-C cannot cut it short
+            if tty:
+                sys.stdout.write("\n")
+            for s, h in old.items():
+                signal.signal(s, h if h is not None else signal.SIG_DFL)
+        if self._signal:
+            return 128 + int(self._signal)
+        if self._required_exit is not None and self._required_exit[1] != 0:
+            return 1
+        return 0

@@ -1,0 +1,172 @@
+"""Algorithm 1's learning part, shared by the in-process trainer and the learner node:
+the agent and its replay, epsilon schedules, one update of each controller every
+``update_every`` env steps, greedy evaluations, checkpoints and metrics."""
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from hdrqn_ros.agents.algorithms import Agent
+from hdrqn_ros.agents.replay import Episode
+from hdrqn_ros.config import TrainConfig
+from hdrqn_ros.envs.registration import make_batch
+from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from hdrqn_ros.training.episodes import EpisodeRecorder, EpisodeStats
+from hdrqn_ros.training.metrics import MetricsLog
+from hdrqn_ros.training.rollout import Rollout
+
+EVAL_SEED_OFFSET = 1_000_003
+"""Evaluation environments use ``seed + EVAL_SEED_OFFSET``: the same held-out episodes
+at every evaluation, never the training ones."""
+
+def build_agent(cfg: TrainConfig) -> Agent:
+    """The agent for ``cfg`` with the action/subgoal counts of its domain."""
+    probe = make_batch(cfg.env, 1, **cfg.env_kwargs)
+    return Agent(cfg, probe.num_actions, probe.num_subgoals)
+
+
+def evaluate(agent: Agent, cfg: TrainConfig, episodes: int, seed: int) -> dict:
+    """Greedy (epsilon 0) episodes, one per environment of a fresh batch, in parallel.
+
+    Returns the means of success (ordered success / key), steps, rewards over episodes.
+    """
+    batch = make_batch(cfg.env, episodes, **cfg.env_kwargs)
+    rollout = Rollout(batch, agent, seed=seed, meta_state=cfg.meta_state)
+    recorder = EpisodeRecorder(episodes, agent.meta is not None, cfg.sub.gamma, cfg.meta.gamma)
+    results: dict[int, EpisodeStats] = {}
+    rng = np.random.default_rng(seed)
+    while len(results) < episodes:
+        for i, _, _, stats in recorder.add(rollout.step(0.0, 0.0, rng)):
+            results.setdefault(i, stats)
+    rows = list(results.values())
+    return {"episodes": len(rows), "success": float(np.mean([r.success for r in rows])),
+            "steps": float(np.mean([r.steps for r in rows])), "reward": float(np.mean([r.classical for r in rows])),
+            "extrinsic": float(np.mean([r.extrinsic for r in rows])),
+            "intrinsic": float(np.mean([r.intrinsic for r in rows]))}
+
+
+class Learner:
+    """Learns ``cfg.algo`` from finished episodes into ``run_dir`` (checkpoints, CSV, TensorBoard)."""
+
+    def __init__(self, cfg: TrainConfig, run_dir: str | Path, resume: bool = False, progress: bool = True,
+                 tensorboard: bool = True):
+        self.cfg = cfg
+        self.run_dir = Path(run_dir)
+        self.checkpoint_path = self.run_dir / "checkpoints" / "last.pt"
+        self.progress = progress
+        torch.set_num_threads(cfg.torch_threads)
+        torch.manual_seed(cfg.seed)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.agent = build_agent(cfg)
+        self.episodes = 0
+        self.env_steps = 0
+        self.meta_begin: int | None = None  # env step at which the meta-controller starts learning
+        if resume:
+            self._resume()
+        elif self.checkpoint_path.exists():
+            raise CheckpointError(f"{self.run_dir} already holds a run; pass --resume to continue it "
+                                  f"or choose another --out")
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        (self.run_dir / "config.yaml").write_text(yaml.safe_dump(cfg.model_dump(), sort_keys=False))
+        self.log = MetricsLog(self.run_dir, tensorboard=tensorboard)
+        self.last_eval: dict | None = None
+        self._pending_updates = 0
+        self._meta_thread = ThreadPoolExecutor(1, thread_name_prefix="meta-update") if cfg.parallel_updates else None
+
+    # -- schedules -----------------------------------------------------------------------
+    def epsilons(self) -> tuple[float, float]:
+        cfg = self.cfg
+        if self.env_steps < cfg.learning_starts:
+            return 1.0, 1.0
+        eps_sub = cfg.sub.epsilon.value(self.env_steps - cfg.learning_starts)
+        if self.episodes < cfg.sub_only_episodes:  # phase 1: subgoals at random
+            return eps_sub, 1.0
+        if self.meta_begin is None:
+            self.meta_begin = self.env_steps
+        return eps_sub, cfg.meta.epsilon.value(self.env_steps - self.meta_begin)
+
+    def _learning(self, ctrl) -> bool:
+        return len(ctrl.replay) >= ctrl.cfg.batch_size and self.env_steps >= self.cfg.learning_starts
+
+    # -- checkpoints ---------------------------------------------------------------------
+    def _resume(self) -> None:
+        payload = load_checkpoint(self.checkpoint_path, map_location=self.cfg.device)
+        saved = payload["config"]
+        for key in ("algo", "env"):
+            if saved.get(key) != getattr(self.cfg, key):
+                raise CheckpointError(f"{self.checkpoint_path} was trained with {key}={saved.get(key)!r}, "
+                                      f"not {getattr(self.cfg, key)!r}")
+        try:
+            self.agent.load_state_dict(payload["agent"])
+        except (KeyError, RuntimeError) as exc:
+            raise CheckpointError(f"{self.checkpoint_path} does not fit this agent: {str(exc).splitlines()[0]}") from None
+        prog = payload["progress"]
+        self.episodes, self.env_steps = int(prog["episodes"]), int(prog["env_steps"])
+        self.meta_begin = prog.get("meta_begin")
+
+    def save(self) -> None:
+        save_checkpoint(self.checkpoint_path, config=self.cfg.model_dump(), agent_state=self.agent.state_dict(),
+                        progress={"episodes": self.episodes, "env_steps": self.env_steps, "meta_begin": self.meta_begin})
+
+    # -- learning --------------------------------------------------------------------------
+    def add_episode(self, sub_ep: Episode, meta_ep: Episode | None) -> None:
+        """Store a finished episode in replay."""
+        self.agent.sub.replay.add(sub_ep)
+        if meta_ep is not None:
+            self.agent.meta.replay.add(meta_ep)
+        self.episodes += 1
+
+    def log_episode(self, stats: EpisodeStats, eps_sub: float, eps_meta: float, wall_s: float,
+                    episode: int | None = None) -> None:
+        """One row of ``train.csv`` / TensorBoard for a finished episode."""
+        self.log.train({"episode": self.episodes if episode is None else episode, "env_steps": self.env_steps,
+                        "steps": stats.steps, "reward": stats.classical, "extrinsic": stats.extrinsic,
+                        "intrinsic": stats.intrinsic, "success": int(stats.success), "options": stats.options,
+                        "eps_sub": round(eps_sub, 4), "eps_meta": round(eps_meta, 4), "wall_s": round(wall_s, 2)})
+
+    def add_steps(self, n: int) -> None:
+        """Count ``n`` env steps; every ``update_every`` of them is owed one update."""
+        self.env_steps += n
+        self._pending_updates += n
+
+    @property
+    def owed_updates(self) -> int:
+        return self._pending_updates // self.cfg.update_every
+
+    def run_owed_updates(self, limit: int | None = None) -> int:
+        """Run the updates owed (at most ``limit``); returns how many ran."""
+        n = self.owed_updates if limit is None else min(limit, self.owed_updates)
+        for _ in range(n):
+            self._pending_updates -= self.cfg.update_every
+            self._update()
+        return n
+
+    def _update(self) -> None:
+        """One update of each controller that has enough data; the meta update runs in a
+        second thread beside the sub update (torch releases the GIL in its kernels)."""
+        meta, sub = self.agent.meta, self.agent.sub
+        meta_due = meta is not None and self.episodes >= self.cfg.sub_only_episodes and self._learning(meta)
+        pending = self._meta_thread.submit(meta.update) if meta_due and self._meta_thread else None
+        if self._learning(sub):
+            sub.update()
+        if pending is not None:
+            pending.result()
+        elif meta_due:
+            meta.update()
+
+    def _next_multiple(self, every: int) -> int:
+        return (self.episodes // every + 1) * every if every else 0
+
+    def _evaluate(self, start: float) -> dict:
+        result = evaluate(self.agent, self.cfg, self.cfg.eval_episodes, self.cfg.seed + EVAL_SEED_OFFSET)
+        self.last_eval = {**result, "at": self.episodes}
+        self.log.eval({"episode": self.episodes, "env_steps": self.env_steps, **result,
+                       "wall_s": round(time.perf_counter() - start, 2)})
+        return result
+
+__all__ = ["Learner", "evaluate", "build_agent", "EVAL_SEED_OFFSET"]

@@ -1,0 +1,163 @@
+"""Tests for hdrqn_ros.supervisor with real child processes (fast: ~5 s total)."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from hdrqn_ros.supervisor import ProcessSpec, Supervisor
+
+PY = sys.executable
+SLEEP = "import signal, sys, time; signal.signal(signal.SIGINT, lambda *a: sys.exit(0)); time.sleep(60)"
+STUBBORN = ("import signal, time; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+            "signal.signal(signal.SIGTERM, signal.SIG_IGN); print('ready', flush=True); time.sleep(60)")
+
+
+def spec(name, code, **kw):
+    return ProcessSpec(name, [PY, "-c", code], **kw)
+
+
+def gone(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    return False
+
+
+def wait_for(pred, timeout=5.0):
+    deadline = time.monotonic() + timeout
+    while not pred():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        time.sleep(0.02)
+
+
+@pytest.fixture
+def sups():
+    made = []
+    yield made
+    for s in made:  # never leak children, even when a test fails
+        s.stop()
+
+
+def test_stop_terminates_all(sups):
+    sup = Supervisor([spec(f"g/p{i}", SLEEP) for i in range(3)], stop_timeout_s=3.0)
+    sups.append(sup)
+    sup.start()
+    pids = sup.pids
+    assert len(pids) == 3
+    t0 = time.monotonic()
+    codes = sup.stop()
+    assert time.monotonic() - t0 < 3.0
+    assert set(codes) == {"g/p0", "g/p1", "g/p2"}
+    assert all(rc is not None for rc in codes.values())
+    assert all(gone(pid) for pid in pids.values())
+    assert sup.stop() == codes  # idempotent
+
+
+def test_stubborn_process_is_killed(sups, tmp_path):
+    sup = Supervisor([spec("stubborn", STUBBORN)], log_dir=tmp_path, stop_timeout_s=0.5)
+    sups.append(sup)
+    sup.start()
+    pid = sup.pids["stubborn"]
+    wait_for(lambda: "ready" in (tmp_path / "stubborn.log").read_text().splitlines())
+    t0 = time.monotonic()
+    codes = sup.stop()
+    elapsed = time.monotonic() - t0
+    assert codes["stubborn"] == -signal.SIGKILL
+    assert 0.5 <= elapsed < 2.5
+    assert gone(pid)
+
+
+def test_respawn_and_kill(sups):
+    sup = Supervisor([spec("flaky", "import sys; sys.exit(1)", respawn=True, respawn_delay_s=0.05),
+                      spec("node", SLEEP, respawn=True, respawn_delay_s=0.05)], stop_timeout_s=2.0)
+    sups.append(sup)
+    sup.start()
+
+    def polled(cond):
+        sup.poll()
+        return cond()
+
+    wait_for(lambda: polled(lambda: sup.restarts["flaky"] >= 1))
+    old = sup.pids["node"]
+    sup.kill("node")
+    wait_for(lambda: polled(lambda: sup.pids.get("node") not in (None, old)))
+    assert sup.restarts["node"] == 1
+    assert gone(old)
+    pid = sup.pids["node"]
+    sup.stop()
+    assert gone(pid)
+
+
+def test_required_failure_stops_everything(sups):
+    sup = Supervisor([spec("req", "import sys, time; time.sleep(0.2); sys.exit(3)", required=True),
+                      spec("other", SLEEP)], stop_timeout_s=2.0)
+    sups.append(sup)
+    sup.start()
+    other = sup.pids["other"]
+    assert sup.run(refresh_s=0.05) == 1
+    assert sup.returncodes["req"] == 3
+    assert sup.returncodes["other"] is not None
+    assert gone(other)
+
+
+def test_run_until_returns_zero(sups):
+    sup = Supervisor([spec("a", SLEEP)], status=lambda: "step=1", stop_timeout_s=2.0)
+    sups.append(sup)
+    t_end = time.monotonic() + 0.3
+    assert sup.run(until=lambda: time.monotonic() > t_end, refresh_s=0.05) == 0
+    assert "step=1" in sup.status_line() and "exited" in sup.status_line()
+    assert sup.pids == {}
+
+
+def test_log_files(sups, tmp_path):
+    log_dir = tmp_path / "logs"
+    sup = Supervisor([spec("g0/env", "print('hello env')"),
+                      spec("g0/agent", "import sys; print('oops agent', file=sys.stderr)")],
+                     log_dir=log_dir)
+    sups.append(sup)
+    assert sup.run(refresh_s=0.05) == 0  # all exited -> returns
+    assert sorted(p.name for p in log_dir.iterdir()) == ["g0_agent.log", "g0_env.log"]
+    assert "hello env" in (log_dir / "g0_env.log").read_text()
+    assert "oops agent" in (log_dir / "g0_agent.log").read_text()
+
+
+DRIVER = f"""
+import json, sys
+from hdrqn_ros.supervisor import ProcessSpec, Supervisor
+code = {SLEEP!r}
+sup = Supervisor([ProcessSpec("a", [sys.executable, "-c", code]),
+                  ProcessSpec("b", [sys.executable, "-c", code])], stop_timeout_s=2.0)
+sup.start()
+print(json.dumps(sup.pids), flush=True)
+sys.exit(sup.run(refresh_s=0.05))
+"""
+
+
+def test_ctrl_c_driver(tmp_path):
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.Popen([PY, "-c", DRIVER], stdout=subprocess.PIPE, text=True, env=env, cwd=root)
+    watchdog = threading.Timer(15.0, proc.kill)
+    watchdog.start()
+    try:
+        pids = json.loads(proc.stdout.readline())
+        assert set(pids) == {"a", "b"}
+        # the first status line is printed inside run(), i.e. after its handlers are installed
+        while not proc.stdout.readline().startswith("[supervisor]"):
+            pass
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=10) == 130
+    finally:
+        watchdog.cancel()
+        if proc.poll() is None:
+            proc.kill()
+        proc.stdout.close()
+    # the driver reaped them; if it had orphaned them they would still be alive
+    assert all(gone(pid) for pid in pids.values())

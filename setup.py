@@ -30,6 +30,9 @@ setup(
         "matplotlib>=3.7",
         "tensorboard>=2.14",
         "torch>=2.1",
+        "cyclonedds>=0.10.5",
+        "rosbags>=0.10",
+        "safetensors>=0.4",
     ],
     extras_require={"test": ["pytest>=8", "hypothesis>=6.100"]},
     zip_safe=True,
@@ -37,6 +40,11 @@ setup(
     entry_points={
         "console_scripts": [
             "hdrqn = hdrqn_ros.cli:main",
+            "environment = hdrqn_ros.nodes.environment:main",
+            "critic = hdrqn_ros.nodes.critic:main",
+            "meta_controller = hdrqn_ros.nodes.controllers:main_meta",
+            "sub_controller = hdrqn_ros.nodes.controllers:main_sub",
+            "learner = hdrqn_ros.nodes.learner:main",
         ],
     },
 )

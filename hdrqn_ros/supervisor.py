@@ -43,10 +43,6 @@ def _kill_leftovers() -> None:
     for p in list(_LIVE):
         if p.poll() is None:
             _killpg(p.pid, signal.SIGKILL)
-            try:
-                p.wait(timeout=1.0)
-            except subprocess.TimeoutExpired:
-                pass
         _LIVE.discard(p)
 
 
@@ -95,14 +91,11 @@ class Supervisor:
         """Pids of the processes running as of the last poll()."""
         return {n: p.pid for n, p in self._procs.items() if p.returncode is None}
 
-    def log_path(self, name: str) -> Path | None:
-        return None if self.log_dir is None else self.log_dir / (name.replace("/", "_") + ".log")
-
     def _spawn(self, name: str) -> None:
         spec, out = self.specs[name], None
         if self.log_dir is not None:
             self.log_dir.mkdir(parents=True, exist_ok=True)
-            out = open(self.log_path(name), "ab")
+            out = open(self.log_dir / (name.replace("/", "_") + ".log"), "ab")  # append
             out.write(f"=== {time.strftime('%Y-%m-%d %H:%M:%S')} start {name}: "
                       f"{shlex.join(spec.argv)}\n".encode())
             out.flush()
@@ -246,9 +239,9 @@ class Supervisor:
         except KeyboardInterrupt:
             self._signal = self._signal or signal.SIGINT
         finally:
-            self.stop()  # our handlers stay installed so a 2nd Ctrl-C cannot cut it short
             if tty:
-                sys.stdout.write("\n")
+                sys.stdout.write("\n")  # keep shutdown output off the status line
+            self.stop()  # our handlers stay installed so a 2nd Ctrl-C cannot cut it short
             for s, h in old.items():
                 signal.signal(s, h if h is not None else signal.SIG_DFL)
         if self._signal:

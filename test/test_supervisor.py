@@ -14,6 +14,7 @@ from hdrqn_ros.supervisor import ProcessSpec, Supervisor
 
 PY = sys.executable
 SLEEP = "import signal, sys, time; signal.signal(signal.SIGINT, lambda *a: sys.exit(0)); time.sleep(60)"
+READY = SLEEP.replace("time.sleep(60)", "print('ready', flush=True); time.sleep(60)")
 STUBBORN = ("import signal, time; signal.signal(signal.SIGINT, signal.SIG_IGN); "
             "signal.signal(signal.SIGTERM, signal.SIG_IGN); print('ready', flush=True); time.sleep(60)")
 
@@ -28,6 +29,13 @@ def gone(pid):
     except ProcessLookupError:
         return True
     return False
+
+
+def wait_ready(log_dir, *names):
+    """A child signalled before its SIGINT handler is set up may miss it (then it gets
+    SIGTERM after stop_timeout_s); wait for readiness so timing asserts are deterministic."""
+    for n in names:
+        wait_for(lambda: "ready" in (log_dir / f"{n.replace('/', '_')}.log").read_text().splitlines())
 
 
 def wait_for(pred, timeout=5.0):
@@ -45,17 +53,18 @@ def sups():
         s.stop()
 
 
-def test_stop_terminates_all(sups):
-    sup = Supervisor([spec(f"g/p{i}", SLEEP) for i in range(3)], stop_timeout_s=3.0)
+def test_stop_terminates_all(sups, tmp_path):
+    sup = Supervisor([spec(f"g/p{i}", READY) for i in range(3)], log_dir=tmp_path, stop_timeout_s=3.0)
     sups.append(sup)
     sup.start()
+    wait_ready(tmp_path, *sup.specs)
     pids = sup.pids
     assert len(pids) == 3
     t0 = time.monotonic()
     codes = sup.stop()
     assert time.monotonic() - t0 < 3.0
     assert set(codes) == {"g/p0", "g/p1", "g/p2"}
-    assert all(rc is not None for rc in codes.values())
+    assert codes == {"g/p0": 0, "g/p1": 0, "g/p2": 0}  # exited via their SIGINT handler
     assert all(gone(pid) for pid in pids.values())
     assert sup.stop() == codes  # idempotent
 
@@ -65,7 +74,7 @@ def test_stubborn_process_is_killed(sups, tmp_path):
     sups.append(sup)
     sup.start()
     pid = sup.pids["stubborn"]
-    wait_for(lambda: "ready" in (tmp_path / "stubborn.log").read_text().splitlines())
+    wait_ready(tmp_path, "stubborn")
     t0 = time.monotonic()
     codes = sup.stop()
     elapsed = time.monotonic() - t0
@@ -140,7 +149,8 @@ sys.exit(sup.run(refresh_s=0.05))
 """
 
 
-def test_ctrl_c_driver(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_driver(sig):
     root = Path(__file__).resolve().parents[1]
     env = dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     proc = subprocess.Popen([PY, "-c", DRIVER], stdout=subprocess.PIPE, text=True, env=env, cwd=root)
@@ -152,8 +162,8 @@ def test_ctrl_c_driver(tmp_path):
         # the first status line is printed inside run(), i.e. after its handlers are installed
         while not proc.stdout.readline().startswith("[supervisor]"):
             pass
-        proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=10) == 130
+        proc.send_signal(sig)  # Ctrl-C / `kill <pid of hdrqn up>`
+        assert proc.wait(timeout=10) == 128 + sig  # 130 / 143
     finally:
         watchdog.cancel()
         if proc.poll() is None:

@@ -41,6 +41,18 @@ ALGO_SPECS: dict[str, AlgoSpec] = {
 }
 
 
+def make_network(algo: str, role: str, num_actions: int, num_subgoals: int):
+    """The Q-network of ``role`` ("meta" or "sub") of ``algo`` (thesis tables 4.5, 4.6)."""
+    spec = ALGO_SPECS[algo]
+    if role == "sub":
+        return make_image_qnet(6 if spec.hierarchical else 3, num_actions, recurrent=spec.recurrent)
+    if role != "meta" or not spec.hierarchical:
+        raise ValueError(f"{algo} has no {role!r} controller")
+    if spec.meta_input == "state":
+        return make_state_qnet(lstm_state_size, num_subgoals, recurrent=True)
+    return make_image_qnet(3, num_subgoals, recurrent=spec.recurrent)
+
+
 def stack_subgoal(obs: np.ndarray, subgoal_image: np.ndarray) -> np.ndarray:
     """Sub-controller input: ``obs`` (..., 44, 44, 3) and the subgoal image broadcast to
     it, stacked to (..., 44, 44, 6) uint8."""
@@ -64,16 +76,12 @@ class Agent:
         self.spec = spec = ALGO_SPECS[cfg.algo]
         self.num_actions = num_actions
         self.num_subgoals = num_subgoals
-        sub_net = make_image_qnet(6 if spec.hierarchical else 3, num_actions, recurrent=spec.recurrent)
-        self.sub = Controller("sub", sub_net, cfg.sub, _sub_window_input if spec.hierarchical else _frames,
-                              device=cfg.device, seed=cfg.seed)
+        self.sub = Controller("sub", make_network(cfg.algo, "sub", num_actions, num_subgoals), cfg.sub,
+                              _sub_window_input if spec.hierarchical else _frames, device=cfg.device, seed=cfg.seed)
         self.meta: Controller | None = None
-        if spec.meta_input == "state":
-            meta_net = make_state_qnet(lstm_state_size, num_subgoals, recurrent=True)
-        elif spec.meta_input == "image":
-            meta_net = make_image_qnet(3, num_subgoals, recurrent=spec.recurrent)
         if spec.hierarchical:
-            self.meta = Controller("meta", meta_net, cfg.meta, _frames, device=cfg.device, seed=cfg.seed + 1)
+            self.meta = Controller("meta", make_network(cfg.algo, "meta", num_actions, num_subgoals), cfg.meta,
+                                   _frames, device=cfg.device, seed=cfg.seed + 1)
 
     @property
     def controllers(self) -> list[Controller]:

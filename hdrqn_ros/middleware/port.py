@@ -58,6 +58,11 @@ class Node(ABC):
     def msg(self, type_name: str) -> type:
         """The message class for ``type_name`` (``"pkg/msg/Type"``)."""
 
+    def pack(self, values) -> Any:
+        """A numeric numpy array as the value of a message's array field (numpy here;
+        ``array.array`` for rclpy, whose message classes accept no numpy arrays)."""
+        return values
+
     @abstractmethod
     def create_publisher(self, type_name: str, topic: str, qos: QoS = DEFAULT_QOS) -> Publisher: ...
 

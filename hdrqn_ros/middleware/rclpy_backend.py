@@ -5,6 +5,7 @@ constructing :class:`RclpyMiddleware` without rclpy raises :class:`ImportError`.
 """
 from __future__ import annotations
 
+import array
 import importlib
 import logging
 import time
@@ -24,10 +25,14 @@ except ImportError as exc:  # no sourced ROS 2 (or a broken one): the Cyclone ba
 else:
     _RCLPY_IMPORT_ERROR = None
 
+import numpy as np
+
 from hdrqn_ros.middleware.port import (DEFAULT_QOS, Middleware, Node, ParameterError, Publisher, QoS,
                                        RosArgsError)
 
 _SPIN_STEP_S = 0.05
+_TYPECODES = {"u1": "B", "i1": "b", "u2": "H", "i2": "h", "u4": "I", "i4": "i", "u8": "Q", "i8": "q", "f4": "f",
+              "f8": "d"}
 _RCUTILS_METHODS = ((logging.CRITICAL, "fatal"), (logging.ERROR, "error"), (logging.WARNING, "warning"),
                     (logging.INFO, "info"), (logging.NOTSET, "debug"))
 
@@ -93,6 +98,11 @@ class RclpyNode(Node):
     def msg(self, type_name: str) -> type:
         """The rosidl class for ``"pkg/msg/Type"``; :class:`ValueError` for an unknown type."""
         return _message_class(type_name)
+
+    def pack(self, values) -> Any:
+        """numpy -> ``array.array`` (rosidl array fields check for it; numpy is refused)."""
+        values = np.ascontiguousarray(values)
+        return array.array(_TYPECODES[values.dtype.str[1:]], values.tobytes())
 
     def create_publisher(self, type_name: str, topic: str, qos: QoS = DEFAULT_QOS) -> Publisher:
         return self._node.create_publisher(self.msg(type_name), topic, _qos_profile(qos))

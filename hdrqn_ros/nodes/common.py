@@ -1,0 +1,134 @@
+"""What every node executable shares: start-up, parameters, the spin loop, clean exit."""
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from hdrqn_ros.agents.algorithms import ALGO_SPECS, make_network
+from hdrqn_ros.agents.weights import WeightsError, load_weights
+from hdrqn_ros.config import ConfigError
+from hdrqn_ros.envs.registration import GRID_IDS, MONTEZUMA_IDS, make_batch
+from hdrqn_ros.middleware import LATCHED_QOS, Middleware, Node, ParameterError, RosArgsError, open_middleware
+from hdrqn_ros.nodes import protocol as P
+from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint
+
+ENV_DEFAULTS = {"algo": "hdrqn-v2", "env": "hdrqn/GridWorld-2Goals-v0", "view": "5", "seed": 0}
+"""Parameters every training-graph node declares (the launch files set them once for all
+nodes with a ``/**`` entry)."""
+
+
+class NodeConfigError(ValueError):
+    """A parameter value the node cannot work with."""
+
+
+def env_kwargs(env_id: str, view: str) -> dict:
+    """``make_batch`` keyword arguments from the ``view`` parameter ("3", "5", "full"...)."""
+    if env_id in MONTEZUMA_IDS:
+        return {}
+    if env_id not in GRID_IDS:
+        raise NodeConfigError(f"unknown env {env_id!r}; choose one of {sorted(GRID_IDS) + sorted(MONTEZUMA_IDS)}")
+    if view == "full":
+        return {"view": "full"}
+    if not view.isdigit():
+        raise NodeConfigError(f"view must be an odd number of cells or 'full', got {view!r}")
+    return {"view": int(view)}
+
+
+def check_algo(algo: str) -> None:
+    if algo not in ALGO_SPECS:
+        raise NodeConfigError(f"unknown algo {algo!r}; choose one of {sorted(ALGO_SPECS)}")
+
+
+def domain_sizes(env_id: str, view: str) -> tuple[int, int]:
+    """(num_actions, num_subgoals) of the domain."""
+    probe = make_batch(env_id, 1, **env_kwargs(env_id, view))
+    return probe.num_actions, probe.num_subgoals
+
+
+class ActingNetwork:
+    """A controller's Q-network for acting in a node: greedy/epsilon choices, weights
+    from a checkpoint and from the learner's ``/learner/*_weights`` topic."""
+
+    def __init__(self, node: Node, role: str, params: dict, default_epsilon: float):
+        check_algo(params["algo"])
+        torch.set_num_threads(1)
+        self.node, self.role = node, role
+        self.num_actions, self.num_subgoals = domain_sizes(params["env"], params["view"])
+        self.net = make_network(params["algo"], role, self.num_actions, self.num_subgoals)
+        self.net.eval()
+        self.rng = np.random.default_rng(params["seed"] + (7 if role == "meta" else 11))
+        self.fixed_epsilon = params["epsilon"] if params["epsilon"] >= 0 else None
+        self.epsilon = self.fixed_epsilon if self.fixed_epsilon is not None else default_epsilon
+        self.weights_version = -1
+        if params["checkpoint"]:
+            self._load_checkpoint(params["checkpoint"])
+        node.create_subscription(P.BYTES, P.WEIGHTS[role], self._on_weights, LATCHED_QOS)
+
+    def _load_checkpoint(self, path: str) -> None:
+        payload = load_checkpoint(path)
+        try:
+            self.net.load_state_dict(payload["agent"][self.role]["online"])
+        except (KeyError, RuntimeError) as exc:
+            raise CheckpointError(f"{path} has no {self.role} network for this algo: "
+                                  f"{str(exc).splitlines()[0]}") from None
+        self.weights_version = 0
+        self.node.logger.info("loaded %s weights from %s", self.role, path)
+
+    def _on_weights(self, msg) -> None:
+        try:
+            version = P.read_weights_version(msg)
+            load_weights(self.net, P.as_bytes(msg.data))
+        except (WeightsError, ValueError) as exc:
+            self.node.logger.warning("rejected %s weights on %s: %s", self.role, P.WEIGHTS[self.role], exc)
+            return
+        self.weights_version = version
+        self.node.logger.debug("%s weights updated (learner update %d)", self.role, version)
+
+    def on_credit(self, credit: dict) -> None:
+        if self.fixed_epsilon is None:
+            self.epsilon = credit["eps_meta" if self.role == "meta" else "eps_sub"]
+
+    def choose(self, x: np.ndarray, state, invalid: int = -1):
+        """One decision for input ``x`` (one row, no batch axis): (index, new LSTM state)."""
+        from hdrqn_ros.training.rollout import epsilon_greedy
+
+        with torch.inference_mode():
+            q, state = self.net.act(torch.as_tensor(x[None]), state)
+        inv = None if invalid < 0 else np.array([invalid])
+        return int(epsilon_greedy(q.numpy(), self.epsilon, self.rng, invalid=inv)[0]), state
+
+    def initial_state(self):
+        return self.net.initial_state(1)
+
+
+def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None) -> int:
+    """Open the middleware, build the node object, spin until it finishes, Ctrl-C or
+    SIGTERM, then clean up (the object's ``close()`` first, then the middleware).
+
+    Exit codes: the object's ``exit_code`` (0), 2 for bad parameters, arguments or
+    checkpoints, 130 when interrupted."""
+    argv = list(sys.argv if argv is None else argv)
+    stopped = threading.Event()
+    previous = signal.signal(signal.SIGTERM, lambda *_: stopped.set())
+    mw = obj = None
+    try:
+        mw = open_middleware(argv)
+        obj = build(mw)
+        mw.spin(until=lambda: stopped.is_set() or getattr(obj, "finished", False))
+        return getattr(obj, "exit_code", 0)
+    except KeyboardInterrupt:
+        return 130
+    except (NodeConfigError, ConfigError, ParameterError, RosArgsError, CheckpointError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        if obj is not None and hasattr(obj, "close"):
+            obj.close()
+        if mw is not None:
+            mw.shutdown()
+        signal.signal(signal.SIGTERM, previous)

@@ -1,0 +1,176 @@
+"""``meta_controller`` and ``sub_controller`` nodes: the two levels of the agent.
+
+meta_controller: at each option's start (the critic says ``option_done``, or a new
+episode) chooses a subgoal from the observation (hDRQNv1, hDQN) or from the
+sub-controller's LSTM state at the end of the last option (hDRQNv2), and publishes the
+current ``subgoal`` for every step. sub_controller: chooses each primitive ``action``
+from the observation stacked with the option's subgoal image (flat DQN/DRQN: the
+observation alone); for hDRQNv2 it also publishes its LSTM state (``sub_state``).
+Both explore with the learner's epsilons (or a fixed ``epsilon`` parameter) and take new
+weights from the learner's latched weights topics.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from hdrqn_ros.agents.algorithms import ALGO_SPECS, stack_subgoal
+from hdrqn_ros.agents.networks import lstm_state_size
+from hdrqn_ros.envs.domain import OBS_SIZE
+from hdrqn_ros.middleware import LATCHED_QOS, Middleware
+from hdrqn_ros.nodes import protocol as P
+from hdrqn_ros.nodes.common import ENV_DEFAULTS, ActingNetwork, NodeConfigError, run_node
+from hdrqn_ros.nodes.follower import StepFollower, done
+
+CONTROLLER_PARAMETERS = {**ENV_DEFAULTS, "epsilon": -1.0, "checkpoint": "", "meta_state": "c"}
+"""``epsilon`` < 0: explore with the learner's schedule (1.0 until it is heard from);
+``checkpoint``: initial weights (``RUN_DIR/checkpoints/last.pt``); ``meta_state``: which
+LSTM state hDRQNv2's meta-controller reads, ``c`` or ``h``."""
+
+
+class _Controller(StepFollower):
+    role = ""
+
+    def __init__(self, mw: Middleware, name: str):
+        node = mw.create_node(name)
+        super().__init__(node)
+        p = self.params = node.declare_parameters(CONTROLLER_PARAMETERS)
+        if p["meta_state"] not in ("c", "h"):
+            raise NodeConfigError(f"meta_state must be 'c' or 'h', got {p['meta_state']!r}")
+        self.net = ActingNetwork(node, self.role, p, default_epsilon=1.0)
+        self.spec = ALGO_SPECS[p["algo"]]
+        self.state = self.net.initial_state()
+        node.create_subscription(P.FLOATS, P.ENV_STEP, self.on_env_step)
+        node.create_subscription(P.FLOATS, P.CREDIT, self._on_credit, LATCHED_QOS)
+
+    def _on_credit(self, msg) -> None:
+        credit = self.decode(P.CREDIT, lambda: P.read_record(msg, P.CREDIT_FIELDS))
+        if credit is not None:
+            self.net.on_credit(credit)
+
+    def _on_image(self, topic: str, msg, height: int = OBS_SIZE) -> None:
+        got = self.decode(topic, lambda: P.read_image(msg, height, OBS_SIZE))
+        if got is not None:
+            self.put(topic, got[0], got[1])
+
+    def reset(self) -> None:
+        super().reset()
+        self.state = self.net.initial_state()
+
+
+class SubControllerNode(_Controller):
+    role = "sub"
+
+    def __init__(self, mw: Middleware):
+        super().__init__(mw, "sub_controller")
+        node = self.node
+        self.subgoal_image = np.zeros((OBS_SIZE, OBS_SIZE, 3), np.uint8)
+        self.pub_action = node.create_publisher(P.INTS, P.ACTION)
+        self.pub_state = node.create_publisher(P.FLOATS, P.SUB_STATE) if self.spec.meta_input == "state" else None
+        self.state_index = 1 if self.params["meta_state"] == "c" else 0
+        node.create_subscription(P.IMAGE, P.OBSERVATION, lambda m: self._on_image(P.OBSERVATION, m))
+        if self.spec.hierarchical:
+            node.create_subscription(P.INTS, P.SUBGOAL, self._on_subgoal)
+            node.create_subscription(P.IMAGE, P.SUBGOAL_IMAGES,
+                                     lambda m: self._on_image(P.SUBGOAL_IMAGES, m, OBS_SIZE * self.net.num_subgoals))
+
+    def _on_subgoal(self, msg) -> None:
+        rec = self.decode(P.SUBGOAL, lambda: P.read_record(msg, P.SUBGOAL_FIELDS, np.int64))
+        if rec is not None and self.decode(P.SUBGOAL, lambda: P.check_index(rec["subgoal"], self.net.num_subgoals,
+                                                                             "subgoal")) is not None:
+            self.put(P.SUBGOAL, rec["key"], rec)
+
+    def ready(self, step: dict) -> bool:
+        key = int(step["key"])
+        if done(step):
+            return True
+        if not self.inbox.has(P.OBSERVATION, key):
+            return False
+        if not self.spec.hierarchical:
+            return True
+        subgoal = self.inbox.get(P.SUBGOAL, key)
+        return subgoal is not None and (not subgoal["new_option"] or self.inbox.has(P.SUBGOAL_IMAGES, key))
+
+    def process(self, step: dict) -> list:
+        if done(step):
+            return []
+        key = int(step["key"])
+        obs = self.inbox.get(P.OBSERVATION, key)
+        if step["t"] == 0:
+            self.state = self.net.initial_state()
+        x = obs
+        if self.spec.hierarchical:
+            subgoal = self.inbox.get(P.SUBGOAL, key)
+            if subgoal["new_option"]:
+                self.state = self.net.initial_state()  # h^S <- 0 for every new option (Algorithm 1)
+                g = int(subgoal["subgoal"])
+                self.subgoal_image = self.inbox.get(P.SUBGOAL_IMAGES, key)[g * OBS_SIZE:(g + 1) * OBS_SIZE]
+            x = stack_subgoal(obs, self.subgoal_image)
+        action, self.state = self.net.choose(x, self.state)
+        replies = []
+        if self.pub_state is not None:
+            replies.append((self.pub_state, P.make_state(self.node, key, self.state[self.state_index][0].numpy())))
+        replies.append((self.pub_action, P.make_record(self.node, P.INTS, P.ACTION_FIELDS, [key, action])))
+        return replies
+
+
+class MetaControllerNode(_Controller):
+    role = "meta"
+
+    def __init__(self, mw: Middleware):
+        super().__init__(mw, "meta_controller")
+        if not self.spec.hierarchical:
+            raise NodeConfigError(f"{self.params['algo']} is a flat agent: it has no meta-controller")
+        node = self.node
+        self.subgoal = -1
+        self.last_sub_state = np.zeros(lstm_state_size, np.float32)
+        self.pub_subgoal = node.create_publisher(P.INTS, P.SUBGOAL)
+        node.create_subscription(P.FLOATS, P.CRITIC, self._on_critic)
+        if self.spec.meta_input == "state":
+            node.create_subscription(P.FLOATS, P.SUB_STATE, self._on_sub_state)
+        else:
+            node.create_subscription(P.IMAGE, P.OBSERVATION, lambda m: self._on_image(P.OBSERVATION, m))
+
+    def _on_critic(self, msg) -> None:
+        rec = self.decode(P.CRITIC, lambda: P.read_record(msg, P.CRITIC_FIELDS))
+        if rec is not None:
+            self.put(P.CRITIC, rec["key"], rec)
+
+    def _on_sub_state(self, msg) -> None:
+        got = self.decode(P.SUB_STATE, lambda: P.read_state(msg, lstm_state_size))
+        if got is not None:
+            self.put(P.SUB_STATE, *got)
+
+    def ready(self, step: dict) -> bool:
+        key, prev = int(step["key"]), int(step["prev_key"])
+        if done(step):
+            return True
+        critic = self.inbox.get(P.CRITIC, key)
+        if critic is None:
+            return False
+        if self.spec.meta_input == "image":
+            return self.inbox.has(P.OBSERVATION, key)
+        return step["t"] == 0 or not critic["option_done"] or self.inbox.has(P.SUB_STATE, prev)
+
+    def process(self, step: dict) -> list:
+        if done(step):
+            return []
+        key = int(step["key"])
+        new_option = bool(self.inbox.get(P.CRITIC, key)["option_done"]) or step["t"] == 0
+        if new_option:
+            if step["t"] == 0:
+                self.state = self.net.initial_state()  # h^M <- 0 for every episode
+                self.last_sub_state[:] = 0.0
+            elif self.spec.meta_input == "state":
+                self.last_sub_state = self.inbox.get(P.SUB_STATE, int(step["prev_key"]))
+            x = self.last_sub_state if self.spec.meta_input == "state" else self.inbox.get(P.OBSERVATION, key)
+            place = int(step["at_subgoal"]) if step["t"] > 0 else -1  # may not choose the subgoal it stands on
+            self.subgoal, self.state = self.net.choose(x, self.state, invalid=place)
+        return [(self.pub_subgoal, P.make_record(self.node, P.INTS, P.SUBGOAL_FIELDS, [key, self.subgoal, new_option]))]
+
+
+def main_sub(argv: list[str] | None = None) -> int:
+    return run_node(lambda mw: SubControllerNode(mw), argv)
+
+
+def main_meta(argv: list[str] | None = None) -> int:
+    return run_node(lambda mw: MetaControllerNode(mw), argv)

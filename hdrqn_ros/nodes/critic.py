@@ -1,0 +1,68 @@
+"""``critic`` node: the internal critic (thesis 3.6) between environment and meta-controller.
+
+For each ``env_step`` (key K, the step taken on observation ``prev_key``) it evaluates the
+domain's :class:`~hdrqn_ros.critic.InternalCritic` with the subgoal the meta-controller
+had chosen for ``prev_key`` and publishes ``critic`` (intrinsic reward, subgoal reached,
+option done). At an episode's first step it publishes ``option_done = 1`` with no reward.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from hdrqn_ros.envs.domain import StepBatch
+from hdrqn_ros.envs.registration import make_batch
+from hdrqn_ros.middleware import Middleware
+from hdrqn_ros.nodes import protocol as P
+from hdrqn_ros.nodes.common import ENV_DEFAULTS, env_kwargs, run_node
+from hdrqn_ros.nodes.follower import StepFollower
+
+
+def step_batch(step: dict, obs: np.ndarray | None = None) -> StepBatch:
+    """A one-row :class:`StepBatch` from an ``env_step`` record (``obs``: (44, 44, 3) or none)."""
+    def col(name, dtype):
+        return np.array([step[name]], dtype)
+
+    return StepBatch(obs=np.zeros((1, 0, 0, 3), np.uint8) if obs is None else obs[None],
+                     classical=col("classical", np.float32), extrinsic=col("extrinsic", np.float32),
+                     terminated=col("terminated", bool), truncated=col("truncated", bool),
+                     agent_pos=np.zeros((1, 2), np.int32), at_subgoal=col("at_subgoal", np.int32),
+                     collected=col("collected", bool), hit_obstacle=col("hit_obstacle", bool),
+                     life_lost=col("life_lost", bool), success=col("success", bool))
+
+
+class CriticNode(StepFollower):
+    def __init__(self, mw: Middleware):
+        node = mw.create_node("critic")
+        super().__init__(node)
+        p = node.declare_parameters(dict(ENV_DEFAULTS))
+        probe = make_batch(p["env"], 1, **env_kwargs(p["env"], p["view"]))
+        self.critic, self.num_subgoals = probe.critic(), probe.num_subgoals
+        self.pub = node.create_publisher(P.FLOATS, P.CRITIC)
+        node.create_subscription(P.FLOATS, P.ENV_STEP, self.on_env_step)
+        node.create_subscription(P.INTS, P.SUBGOAL, self._on_subgoal)
+
+    def _on_subgoal(self, msg) -> None:
+        rec = self.decode(P.SUBGOAL, lambda: P.read_record(msg, P.SUBGOAL_FIELDS, np.int64))
+        if rec is not None and self.decode(P.SUBGOAL, lambda: P.check_index(rec["subgoal"], self.num_subgoals,
+                                                                             "subgoal")) is not None:
+            self.put(P.SUBGOAL, rec["key"], rec["subgoal"])
+
+    def ready(self, step: dict) -> bool:
+        return step["t"] == 0 or self.inbox.has(P.SUBGOAL, int(step["prev_key"]))
+
+    def process(self, step: dict) -> list:
+        if step["t"] == 0:
+            values = [step["key"], 0.0, 0.0, 1.0, -1.0]
+        else:
+            subgoal = self.inbox.get(P.SUBGOAL, int(step["prev_key"]))
+            result = self.critic.evaluate(step_batch(step), np.array([subgoal]))
+            values = [step["key"], result.intrinsic[0], result.reached[0], result.option_done[0], subgoal]
+        return [(self.pub, P.make_record(self.node, P.FLOATS, P.CRITIC_FIELDS, values))]
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_node(lambda mw: CriticNode(mw), argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

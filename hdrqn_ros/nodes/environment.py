@@ -1,0 +1,156 @@
+"""``environment`` node: one simulated domain, stepped in lock-step with the controllers.
+
+For every step key it publishes ``observation`` (rgb8 Image), ``env_step`` (what the last
+action did), ``pose`` (agent cell, PoseStamped) and ``/clock`` (sim time = key), and at
+decision points ``subgoal_images``. It steps when the ``action`` for the current key
+arrives and, with ``wait_for_learner``, only while the learner's ``learner_credit``
+allows. A missing peer is logged every ``action_timeout`` seconds and the current step
+is re-published, so a controller that (re)joins late picks the loop up again.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from hdrqn_ros.envs.domain import NO_SUBGOAL
+from hdrqn_ros.envs.registration import make_batch
+from hdrqn_ros.middleware import LATCHED_QOS, Middleware
+from hdrqn_ros.nodes import protocol as P
+from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, env_kwargs, run_node
+
+PARAMETERS = {**ENV_DEFAULTS, "step_period": 0.01, "frame_id": "hdrqn_map", "action_timeout": 5.0,
+              "wait_for_learner": False, "max_episodes": 0}
+"""``step_period``: simulated seconds per step (the key increment); ``max_episodes``: stop
+after this many episodes (0: run until stopped)."""
+
+
+class EnvironmentNode:
+    def __init__(self, mw: Middleware):
+        node = self.node = mw.create_node("environment")
+        p = self.params = node.declare_parameters(PARAMETERS)
+        self.period_ns = int(round(p["step_period"] * 1e9))
+        if self.period_ns <= 0 or p["action_timeout"] <= 0:
+            raise NodeConfigError("step_period and action_timeout must be > 0")
+        self.batch = make_batch(p["env"], 1, **env_kwargs(p["env"], p["view"]))
+        self.pub_obs = node.create_publisher(P.IMAGE, P.OBSERVATION)
+        self.pub_images = node.create_publisher(P.IMAGE, P.SUBGOAL_IMAGES)
+        self.pub_step = node.create_publisher(P.FLOATS, P.ENV_STEP)
+        self.pub_pose = node.create_publisher(P.POSE_STAMPED, P.POSE)
+        self.pub_clock = node.create_publisher(P.CLOCK_TYPE, P.CLOCK)
+        node.create_subscription(P.INTS, P.ACTION, self._on_action)
+        node.create_subscription(P.FLOATS, P.CREDIT, self._on_credit, LATCHED_QOS)
+        node.create_timer(min(0.5, p["action_timeout"]), self._watchdog)
+        self.credit = 0  # the learner lets this env take steps while self.steps < credit
+        self.steps = 0
+        self.episode = 0
+        self.key = 0
+        self.pending_action: int | None = None
+        self.finished = False
+        self.obs = self.batch.reset(seed=p["seed"])[0]
+        self._begin_episode()
+
+    # -- publishing ------------------------------------------------------------------------
+    def _begin_episode(self) -> None:
+        self.t = 0
+        self.step_record = dict.fromkeys(P.STEP_FIELDS, 0.0)
+        self.step_record.update(prev_key=0, env_steps=self.steps, episode=self.episode, at_subgoal=NO_SUBGOAL,
+                                decision_point=1)
+        self._new_key()
+        self._publish()
+
+    def _new_key(self) -> None:
+        self.key += self.period_ns
+        self.step_record["key"] = self.key
+        self.published_at = time.monotonic()
+
+    def _publish(self) -> None:
+        node, key, frame = self.node, self.key, self.params["frame_id"]
+        if self.step_record["decision_point"]:
+            images = [self.batch.subgoal_images(np.array([g]))[0] for g in range(self.batch.num_subgoals)]
+            self.pub_images.publish(P.make_image(node, key, np.concatenate(images), frame))
+        self.pub_obs.publish(P.make_image(node, key, self.obs, frame))
+        self.pub_step.publish(P.make_record(node, P.FLOATS, P.STEP_FIELDS, [self.step_record[f] for f in P.STEP_FIELDS]))
+        self.pub_clock.publish(node.msg(P.CLOCK_TYPE)(clock=P.make_time(node, key)))
+        row, col = (float(v) for v in self.batch.agent_pos[0])
+        self.pub_pose.publish(P.make_pose(node, key, frame, x=col, y=row))
+
+    # -- stepping ----------------------------------------------------------------------------
+    def _on_action(self, msg) -> None:
+        try:
+            rec = P.read_record(msg, P.ACTION_FIELDS, np.int64)
+            action = P.check_index(rec["action"], self.batch.num_actions, "action")
+        except P.ProtocolError as exc:
+            self.node.logger.warning("rejected a message on %s: %s", self._topic(P.ACTION), exc)
+            return
+        if rec["key"] != self.key or self.pending_action is not None:
+            return  # a stale or repeated reply (e.g. to a re-published step)
+        self.pending_action = action
+        self._step_if_allowed()
+
+    def _on_credit(self, msg) -> None:
+        try:
+            credit = P.read_record(msg, P.CREDIT_FIELDS)
+        except P.ProtocolError as exc:
+            self.node.logger.warning("rejected a message on learner_credit: %s", exc)
+            return
+        self.credit = int(credit["credit_steps"])
+        self._step_if_allowed()
+
+    def _step_if_allowed(self) -> None:
+        if self.pending_action is None or self.finished:
+            return
+        if self.params["wait_for_learner"] and self.steps >= self.credit:
+            return
+        action, self.pending_action = self.pending_action, None
+        prev_key = self.key
+        step = self.batch.step(np.array([action]))
+        self.steps += 1
+        self.t += 1
+        self.obs = step.obs[0]
+        decision = step.at_subgoal[0] >= 0 or step.life_lost[0]
+        self.step_record = {"prev_key": prev_key, "env_steps": self.steps, "episode": self.episode, "t": self.t, "action": action,
+                            "extrinsic": step.extrinsic[0], "classical": step.classical[0],
+                            "terminated": step.terminated[0], "truncated": step.truncated[0],
+                            "at_subgoal": step.at_subgoal[0], "collected": step.collected[0],
+                            "hit_obstacle": step.hit_obstacle[0], "life_lost": step.life_lost[0],
+                            "success": step.success[0], "decision_point": decision and not step.done[0]}
+        self._new_key()
+        self._publish()
+        if step.done[0]:
+            self.episode += 1
+            max_episodes = self.params["max_episodes"]
+            if max_episodes and self.episode >= max_episodes:
+                self.node.logger.info("finished %d episodes (%d steps)", self.episode, self.steps)
+                self.finished = True
+                return
+            self.obs = self.batch.reset_where(np.ones(1, bool))[0]
+            self._begin_episode()
+
+    def _topic(self, name: str) -> str:
+        return self.node.resolve_topic(name)
+
+    def _watchdog(self) -> None:
+        waited = time.monotonic() - self.published_at
+        if not self.finished and not self.steps and self.pending_action is None:
+            self._publish()  # starting up: peers may still be discovering us
+        if self.finished or waited < self.params["action_timeout"]:
+            return
+        if self.pending_action is not None:
+            self.node.logger.warning("step t=%d of episode %d waits for the learner: %d steps taken, credit %d "
+                                     "(is the learner running? topic %s)", self.t, self.episode, self.steps,
+                                     self.credit, self._topic(P.CREDIT))
+        else:
+            self.node.logger.warning("no action for step t=%d of episode %d after %.1f s on %s (is the "
+                                     "sub_controller running?); re-publishing the step", self.t, self.episode,
+                                     waited, self._topic(P.ACTION))
+            self._publish()
+        self.published_at = time.monotonic()
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_node(lambda mw: EnvironmentNode(mw), argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

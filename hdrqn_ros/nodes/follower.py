@@ -1,0 +1,137 @@
+"""Following the environment's steps in key order: the join every graph node needs.
+
+A node receives ``env_step`` records and other per-key messages from several writers, in
+whatever order DDS delivers them. :class:`StepFollower` queues the steps in key order,
+keeps the other inputs by key in a bounded :class:`KeyedInbox`, and hands a step to the
+node's ``process`` only when the node says its inputs are all there. Repeated steps (the
+environment re-publishes a step nobody answered) get the node's earlier reply again; an
+environment restart (keys starting over) resets the follower.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict, deque
+from typing import Any, Callable
+
+from hdrqn_ros.nodes import protocol as P
+
+DEFAULT_CAPACITY = 512
+"""Keys kept per input topic, steps queued, and replies remembered (each bounded)."""
+
+
+class KeyedInbox:
+    """Latest value per (topic, key); at most ``capacity`` keys per topic (oldest dropped)."""
+
+    def __init__(self, capacity: int = DEFAULT_CAPACITY):
+        self.capacity = capacity
+        self.slots: dict[str, OrderedDict[int, Any]] = {}
+
+    def put(self, topic: str, key: int, value: Any) -> None:
+        slot = self.slots.setdefault(topic, OrderedDict())
+        slot[key] = value
+        slot.move_to_end(key)
+        while len(slot) > self.capacity:
+            slot.popitem(last=False)
+
+    def get(self, topic: str, key: int, default: Any = None) -> Any:
+        return self.slots.get(topic, {}).get(key, default)
+
+    def has(self, topic: str, key: int) -> bool:
+        return key in self.slots.get(topic, {})
+
+    def forget_before(self, key: int) -> None:
+        """Drop every value of a key < ``key`` (steps already processed)."""
+        for slot in self.slots.values():
+            while slot and next(iter(slot)) < key:
+                slot.popitem(last=False)
+
+    def clear(self) -> None:
+        self.slots.clear()
+
+
+class StepFollower:
+    """Base of the critic, meta- and sub-controller nodes and the learner's group assembler.
+
+    Subclasses implement ``ready(step) -> bool`` and ``process(step) -> list of
+    (publisher, message)`` (the replies, remembered for repeats) and may override
+    ``reset()``. ``step`` is the ``env_step`` record as a dict of :data:`P.STEP_FIELDS`."""
+
+    def __init__(self, node, capacity: int = DEFAULT_CAPACITY):
+        self.node = node
+        self.capacity = capacity
+        self.inbox = KeyedInbox(capacity)
+        self.queue: deque[dict] = deque()
+        self.replies: OrderedDict[int, list] = OrderedDict()
+        self.last_key = 0
+        self.rejected = 0
+
+    # -- inputs ----------------------------------------------------------------------------------
+    def on_env_step(self, msg) -> None:
+        step = self.decode(P.ENV_STEP, lambda: P.read_record(msg, P.STEP_FIELDS))
+        if step is None:
+            return
+        self.received(step)
+        key = int(step["key"])
+        if key in self.replies:
+            for pub, reply in self.replies[key]:
+                pub.publish(reply)
+            return
+        if step["t"] == 0 and key <= self.last_key:
+            self.node.logger.info("the environment restarted (step keys start over): resynchronising")
+            self.reset()
+        elif key <= self.last_key or (self.queue and key <= self.queue[-1]["key"]):
+            return  # stale or repeated before we answered
+        self.queue.append(step)
+        if len(self.queue) > self.capacity:
+            dropped = self.queue.popleft()
+            self.node.logger.warning("inputs for step key %d never arrived; skipping it", int(dropped["key"]))
+        self.pump()
+
+    def put(self, topic: str, key: int, value: Any) -> None:
+        if key >= self.last_key:  # inputs of the last processed step may still be needed (prev_key)
+            self.inbox.put(topic, key, value)
+        self.pump()
+
+    def decode(self, topic: str, read: Callable[[], Any]) -> Any:
+        """``read()``, or ``None`` with a logged warning if the message is malformed."""
+        try:
+            return read()
+        except (P.ProtocolError, ValueError, TypeError, AttributeError) as exc:
+            self.rejected += 1
+            if self.rejected <= 10 or self.rejected % 1000 == 0:
+                self.node.logger.warning("rejected a message on %s: %s (%d rejected so far)",
+                                         self.node.resolve_topic(topic), exc, self.rejected)
+            return None
+
+    # -- processing ------------------------------------------------------------------------------
+    def pump(self) -> None:
+        while self.queue and self.ready(self.queue[0]):
+            step = self.queue.popleft()
+            key = int(step["key"])
+            replies = self.process(step)
+            for pub, reply in replies:
+                pub.publish(reply)
+            self.replies[key] = replies
+            while len(self.replies) > 8:
+                self.replies.popitem(last=False)
+            self.last_key = key
+            self.inbox.forget_before(int(step["prev_key"]) or key)
+
+    def received(self, step: dict) -> None:
+        """Called for every well-formed ``env_step`` on arrival (before ordering)."""
+
+    def ready(self, step: dict) -> bool:
+        raise NotImplementedError
+
+    def process(self, step: dict) -> list:
+        raise NotImplementedError
+
+    def reset(self) -> None:
+        self.queue.clear()
+        self.inbox.clear()
+        self.replies.clear()
+        self.last_key = 0
+
+
+def done(step: dict) -> bool:
+    """The step ended its episode."""
+    return bool(step["terminated"] or step["truncated"])

@@ -1,0 +1,208 @@
+"""Nav2 adapters: subgoal index -> goal pose, action index -> velocity, local costmap -> observation.
+
+Pure functions and classes without ROS imports; they only use the port ``node`` to build
+messages (``node.msg``). Units: metres, radians, m/s, rad/s. Observations are
+``(44, 44, 3) uint8`` RGB images in the gridworld's colours (see ``docs/nav2.md``).
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from hdrqn_ros.envs.gridworld import AGENT, FREE, PALETTE, WALL
+from hdrqn_ros.middleware.messages import as_array
+
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+TWIST = "geometry_msgs/msg/Twist"
+TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
+OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
+META_PARAMETERS = {"subgoal_table": "", "goal_pose_topic": "goal_pose"}
+"""Suggested meta_controller parameters (defaults) for the Nav2 path; '' = not used."""
+SUB_PARAMETERS = {"action_table": "", "cmd_vel_topic": "cmd_vel", "observation_source": "topic",
+                  "costmap_topic": "/local_costmap/costmap"}
+"""Suggested sub_controller parameters; ``observation_source``: 'topic' (the env's) or 'costmap'."""
+LETHAL = 65
+"""Default threshold: OccupancyGrid cost (0..100) at or above it is drawn as a wall."""
+_POSE_KEYS = {"x", "y", "yaw"}
+_TWIST_KEYS = {f"{kind}_{axis}" for kind in ("linear", "angular") for axis in "xyz"}
+
+
+class NavConfigError(ValueError):
+    """A table (the message names its file) or a costmap message that cannot be used."""
+
+
+def _read(path, allowed: set[str], required: set[str]) -> dict:
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise NavConfigError(f"cannot read {path}: {exc.strerror or exc}") from None
+    except yaml.YAMLError as exc:
+        raise NavConfigError(f"{path} is not valid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise NavConfigError(f"{path}: top level must be a mapping, got {type(data).__name__}")
+    if unknown := set(data) - allowed:
+        raise NavConfigError(f"{path}: unknown key(s) {sorted(map(str, unknown))}; allowed: {sorted(allowed)}")
+    if missing := required - set(data):
+        raise NavConfigError(f"{path}: missing key(s) {sorted(missing)}")
+    if "frame_id" in data and (not isinstance(data["frame_id"], str) or not data["frame_id"]):
+        raise NavConfigError(f"{path}: frame_id must be a non-empty string, got {data['frame_id']!r}")
+    return data
+
+
+def _entries(path, data: dict, key: str, allowed: set[str], required: set[str], count: int | None) -> list[dict]:
+    """The list ``data[key]`` checked entry by entry: float values, name optional."""
+    items = data[key]
+    if not isinstance(items, list) or not items:
+        raise NavConfigError(f"{path}: {key} must be a non-empty list, got {items!r}")
+    if count is not None and len(items) != count:
+        raise NavConfigError(f"{path}: {key} has {len(items)} entries but the agent has {count} (one per index)")
+    out = []
+    for i, item in enumerate(items):
+        where = f"{path}: {key}[{i}]"
+        if not isinstance(item, dict):
+            raise NavConfigError(f"{where} must be a mapping like {{{', '.join(sorted(required or allowed))}: ...}}")
+        if unknown := set(item) - allowed - {"name"}:
+            raise NavConfigError(f"{where}: unknown key(s) {sorted(map(str, unknown))}; allowed: {sorted(allowed)}")
+        if missing := required - set(item):
+            raise NavConfigError(f"{where}: missing key(s) {sorted(missing)}")
+        entry = {}
+        for k in allowed & set(item):
+            v = item[k]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise NavConfigError(f"{where}: {k} must be a finite number, got {v!r}")
+            entry[k] = float(v)
+        out.append(entry)
+    return out
+
+
+def _index(i, n: int, what: str) -> int:
+    if isinstance(i, (bool, np.bool_)) or not isinstance(i, (int, np.integer)) or not 0 <= i < n:
+        raise IndexError(f"{what} must be an integer in [0, {n}), got {i!r}")
+    return int(i)
+
+
+def _time(node, stamp):
+    """``builtin_interfaces/Time`` from ``(sec, nanosec)`` or integer nanoseconds."""
+    sec, nsec = divmod(int(stamp), 10**9) if isinstance(stamp, (int, np.integer)) else stamp
+    return node.msg("builtin_interfaces/msg/Time")(sec=int(sec), nanosec=int(nsec))
+
+
+class SubgoalTable:
+    """One goal pose ``(x, y, yaw)`` in ``frame_id`` per subgoal index (for Nav2's ``goal_pose``)."""
+
+    def __init__(self, poses: list[tuple[float, float, float]], frame_id: str = "map", source: str = "<table>"):
+        self.poses, self.frame_id, self.source = [tuple(map(float, p)) for p in poses], frame_id, source
+
+    @classmethod
+    def load(cls, path, num_subgoals: int | None = None) -> "SubgoalTable":
+        data = _read(path, {"frame_id", "subgoals"}, {"subgoals"})
+        entries = _entries(path, data, "subgoals", _POSE_KEYS, {"x", "y"}, num_subgoals)
+        return cls([(e["x"], e["y"], e.get("yaw", 0.0)) for e in entries], data.get("frame_id", "map"), str(path))
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    def pose_msg(self, node, g, stamp_sec: int = 0, stamp_nanosec: int = 0):
+        """``geometry_msgs/PoseStamped`` of subgoal ``g`` (yaw about z -> quaternion z, w)."""
+        x, y, yaw = self.poses[_index(g, len(self), "subgoal")]
+        m = node.msg
+        return m(POSE_STAMPED)(
+            header=m("std_msgs/msg/Header")(stamp=_time(node, (stamp_sec, stamp_nanosec)), frame_id=self.frame_id),
+            pose=m("geometry_msgs/msg/Pose")(
+                position=m("geometry_msgs/msg/Point")(x=x, y=y, z=0.0),
+                orientation=m("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))))
+
+
+class ActionTable:
+    """One velocity command per action index; ``stamped`` selects TwistStamped over Twist."""
+
+    def __init__(self, commands: list[dict[str, float]], stamped: bool = False, frame_id: str = "base_link",
+                 source: str = "<table>"):
+        self.commands, self.stamped, self.frame_id, self.source = commands, bool(stamped), frame_id, source
+
+    @classmethod
+    def load(cls, path, num_actions: int) -> "ActionTable":
+        data = _read(path, {"stamped", "frame_id", "actions"}, {"actions"})
+        stamped = data.get("stamped", False)
+        if not isinstance(stamped, bool):
+            raise NavConfigError(f"{path}: stamped must be true or false, got {stamped!r}")
+        entries = _entries(path, data, "actions", _TWIST_KEYS, set(), num_actions)
+        return cls(entries, stamped, data.get("frame_id", "base_link"), str(path))
+
+    def __len__(self) -> int:
+        return len(self.commands)
+
+    @property
+    def type_name(self) -> str:
+        return TWIST_STAMPED if self.stamped else TWIST
+
+    def _msg(self, node, cmd: dict[str, float], stamp):
+        v3 = node.msg("geometry_msgs/msg/Vector3")
+        twist = node.msg(TWIST)(
+            linear=v3(x=cmd.get("linear_x", 0.0), y=cmd.get("linear_y", 0.0), z=cmd.get("linear_z", 0.0)),
+            angular=v3(x=cmd.get("angular_x", 0.0), y=cmd.get("angular_y", 0.0), z=cmd.get("angular_z", 0.0)))
+        if not self.stamped:
+            return twist
+        header = node.msg("std_msgs/msg/Header")(stamp=_time(node, stamp), frame_id=self.frame_id)
+        return node.msg(TWIST_STAMPED)(header=header, twist=twist)
+
+    def twist_msg(self, node, a, stamp=(0, 0)):
+        """Command of action ``a``; ``stamp`` (``(sec, nanosec)`` or ns) is used only when stamped."""
+        return self._msg(node, self.commands[_index(a, len(self), "action")], stamp)
+
+    def stop_msg(self, node, stamp=(0, 0)):
+        """The all-zero command (publish it on shutdown)."""
+        return self._msg(node, {}, stamp)
+
+
+def costmap_to_observation(msg, robot_xy=None, view_cells: int = 5, size: int = 44, *, robot_yaw=None,
+                           cell_size_m: float | None = None, lethal: int = LETHAL) -> np.ndarray:
+    """``(size, size, 3) uint8``: a gridworld-style observation of an OccupancyGrid.
+
+    A ``view_cells`` x ``view_cells`` window of simulator cells of side ``cell_size_m``
+    (default 5 x resolution) centred on ``robot_xy`` (costmap frame, m; default: the centre
+    of cell ``(width // 2, height // 2)``, where a rolling local costmap keeps the robot).
+    Each cell is sampled at ``n x n`` points, ``n = ceil(cell_size_m / resolution)``; it is
+    a wall if any sample has cost >= ``lethal``, is unknown (-1) or lies outside the grid,
+    else free (max aggregation). The centre cell shows the agent. ``robot_yaw=None``: image
+    up = costmap +y (north-up, like the simulator's allocentric moves); a yaw (rad): image
+    up = the robot's heading (egocentric). The costmap origin's orientation is assumed
+    identity (as Nav2 publishes it).
+    Upscaled by nearest neighbour exactly like the simulator.
+    """
+    info = msg.info
+    w, h, res = int(info.width), int(info.height), float(info.resolution)
+    data = as_array(msg.data, np.int8)
+    if not (math.isfinite(res) and res > 0):
+        raise NavConfigError(f"costmap resolution must be positive, got {res}")
+    if w * h == 0 or w * h != data.size:
+        raise NavConfigError(f"costmap is {w}x{h} cells but has {data.size} data values")
+    if isinstance(view_cells, bool) or not isinstance(view_cells, (int, np.integer)) or view_cells < 1 \
+            or view_cells % 2 == 0:
+        raise ValueError(f"view_cells must be a positive odd integer, got {view_cells!r}")
+    if not 1 <= lethal <= 100:
+        raise ValueError(f"lethal must be in [1, 100], got {lethal!r}")
+    cell = 5 * res if cell_size_m is None else float(cell_size_m)
+    if not (math.isfinite(cell) and cell > 0):
+        raise ValueError(f"cell_size_m must be positive, got {cell_size_m!r}")
+    ox, oy = float(info.origin.position.x), float(info.origin.position.y)
+    rx, ry = (ox + (w // 2 + 0.5) * res, oy + (h // 2 + 0.5) * res) if robot_xy is None else map(float, robot_xy)
+    fx, fy = (0.0, 1.0) if robot_yaw is None else (math.cos(robot_yaw), math.sin(robot_yaw))  # image up
+    n = max(1, math.ceil(cell / res - 1e-6))
+    m = view_cells * n
+    off = (np.arange(m) + 0.5 - m / 2) * (cell / n)  # sample offsets, m; rows: top -> bottom = -up
+    up, right = -off[:, None], off[None, :]
+    px, py = rx + up * fx + right * fy, ry + up * fy - right * fx  # right = heading rotated by -90 deg
+    # samples on a cell border go to the upper cell (the 1e-6 absorbs rounding)
+    col, row = (np.floor((p - o) / res + 1e-6).astype(np.int64) for p, o in ((px, ox), (py, oy)))
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    cost = np.where(inside, data.reshape(h, w)[row.clip(0, h - 1), col.clip(0, w - 1)], -1).astype(np.int16)
+    blocked = ((cost >= lethal) | (cost < 0)).reshape(view_cells, n, view_cells, n).any(axis=(1, 3))
+    codes = np.where(blocked, WALL, FREE)
+    codes[view_cells // 2, view_cells // 2] = AGENT
+    counts = np.bincount((np.arange(size) * view_cells) // size, minlength=view_cells)  # as the simulator
+    return np.repeat(np.repeat(PALETTE[codes], counts, axis=0), counts, axis=1)

@@ -1,0 +1,205 @@
+"""The training graph's wire protocol: topics, message layouts, validation.
+
+Every per-step message carries the **step key**: the simulation time of the observation
+it belongs to, in nanoseconds (``key = step_index * step_period``). Images carry it as
+``header.stamp``; the scalar messages (standard ``std_msgs/*MultiArray`` types) as their
+first element. Layout labels name every element, so ``ros2 topic echo`` is readable.
+Nodes join their inputs by key, so no message is ever paired with another step's, even
+when DDS delivers different writers' samples in another order, or a node restarts.
+
+A transition ``prev_key -> key`` is: observation(prev_key), subgoal(prev_key),
+action(prev_key), then env_step(key) (what stepping did) and critic(key) (intrinsic
+reward of that step), and observation(key).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from hdrqn_ros.middleware.messages import as_array
+from hdrqn_ros.middleware.port import QoS
+
+# topics, relative to the group's namespace unless absolute
+OBSERVATION = "observation"
+SUBGOAL_IMAGES = "subgoal_images"
+ENV_STEP = "env_step"
+POSE = "pose"
+CRITIC = "critic"
+SUBGOAL = "subgoal"
+ACTION = "action"
+SUB_STATE = "sub_state"
+CREDIT = "learner_credit"
+CLOCK = "/clock"
+WEIGHTS = {"sub": "/learner/sub_weights", "meta": "/learner/meta_weights"}
+STATUS = "/learner/status"
+
+IMAGE = "sensor_msgs/msg/Image"
+FLOATS = "std_msgs/msg/Float64MultiArray"
+INTS = "std_msgs/msg/Int64MultiArray"
+BYTES = "std_msgs/msg/UInt8MultiArray"
+STRING = "std_msgs/msg/String"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
+
+STEP_FIELDS = ("key", "prev_key", "env_steps", "episode", "t", "action", "extrinsic", "classical", "terminated", "truncated",
+               "at_subgoal", "collected", "hit_obstacle", "life_lost", "success", "decision_point")
+"""``env_step``: the env stepped ``action`` on observation ``prev_key`` and now shows
+``key`` (at ``t`` = 0 a new episode begins: ``prev_key`` = 0, no action); ``env_steps``
+counts the env's steps since it started (the learner's credit refers to it). ``decision_point``:
+a new option may start here, and ``subgoal_images`` for ``key`` are published."""
+CRITIC_FIELDS = ("key", "intrinsic", "reached", "option_done", "subgoal")
+"""``critic``: the internal critic's verdict on the step into ``key`` for ``subgoal``
+(option_done = 1 at an episode's first step: the meta-controller must choose)."""
+SUBGOAL_FIELDS = ("key", "subgoal", "new_option")
+ACTION_FIELDS = ("key", "action")
+CREDIT_FIELDS = ("credit_steps", "eps_sub", "eps_meta", "acked_key", "epoch")
+"""``learner_credit``: the env may take steps while its step count < ``credit_steps``;
+the controllers explore with ``eps_sub``/``eps_meta``; ``acked_key`` is the last key
+the learner stored; ``epoch`` changes when the learner restarts."""
+
+LEARNER_QOS = QoS(depth=100)
+"""The learner's subscriptions: reliable, keep-last 100 (it may be busy with an update)."""
+
+MAX_KEY = 2**53
+"""Keys are exact in float64 up to 2^53 ns (104 days of simulated time)."""
+
+
+class ProtocolError(ValueError):
+    """A message that does not fit the protocol (wrong size, type, range, NaN...)."""
+
+
+@dataclass(frozen=True)
+class Stamp:
+    sec: int
+    nanosec: int
+
+    @classmethod
+    def of(cls, key: int) -> "Stamp":
+        return cls(int(key // 1_000_000_000), int(key % 1_000_000_000))
+
+
+def key_of(stamp) -> int:
+    """The step key of a ``builtin_interfaces/Time``."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def make_record(node, type_name: str, fields: tuple[str, ...], values) -> object:
+    """A ``*MultiArray`` message holding ``values`` in the order of ``fields``."""
+    cls = node.msg(type_name)
+    dim = node.msg("std_msgs/msg/MultiArrayDimension")(label=",".join(fields), size=len(fields),
+                                                       stride=len(fields))
+    layout = node.msg("std_msgs/msg/MultiArrayLayout")(dim=[dim], data_offset=0)
+    dtype = np.float64 if type_name == FLOATS else np.int64
+    return cls(layout=layout, data=node.pack(np.asarray(values, dtype=dtype)))
+
+
+def read_record(msg, fields: tuple[str, ...], dtype=np.float64, extra: bool = False) -> dict[str, float]:
+    """The named values of a ``*MultiArray`` record; ``extra``: trailing values allowed
+    (returned under ``"rest"``). Raises :class:`ProtocolError` on a malformed message."""
+    data = as_array(msg.data, dtype)
+    n = len(fields)
+    if data.size < n or (data.size != n and not extra):
+        raise ProtocolError(f"expected {n} values ({','.join(fields)}), got {data.size}")
+    if dtype == np.float64 and not np.isfinite(data).all():
+        raise ProtocolError("non-finite value (NaN or inf)")
+    out = {f: data[i].item() for i, f in enumerate(fields)}
+    key = out.get("key")
+    if key is not None and not (0 < key < MAX_KEY and float(key).is_integer()):
+        raise ProtocolError(f"step key {key!r} is not a positive integer below 2^53")
+    if extra:
+        out["rest"] = data[n:]
+    return out
+
+
+def make_time(node, key: int) -> object:
+    """``builtin_interfaces/Time`` of a key (ns)."""
+    s = Stamp.of(key)
+    return node.msg("builtin_interfaces/msg/Time")(sec=s.sec, nanosec=s.nanosec)
+
+
+def make_header(node, key: int, frame_id: str) -> object:
+    return node.msg("std_msgs/msg/Header")(stamp=make_time(node, key), frame_id=frame_id)
+
+
+def make_pose(node, key: int, frame_id: str, x: float, y: float) -> object:
+    """``geometry_msgs/PoseStamped`` at (x, y) (grid: column, row), identity orientation."""
+    pose = node.msg("geometry_msgs/msg/Pose")(
+        position=node.msg("geometry_msgs/msg/Point")(x=x, y=y, z=0.0),
+        orientation=node.msg("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=0.0, w=1.0))
+    return node.msg(POSE_STAMPED)(header=make_header(node, key, frame_id), pose=pose)
+
+
+def make_state(node, key: int, state: np.ndarray) -> object:
+    """``sub_state``: Float64MultiArray ``[key, state...]`` (the LSTM state, 256 values)."""
+    dims = [node.msg("std_msgs/msg/MultiArrayDimension")(label="key", size=1, stride=1 + state.size),
+            node.msg("std_msgs/msg/MultiArrayDimension")(label="state", size=state.size, stride=state.size)]
+    layout = node.msg("std_msgs/msg/MultiArrayLayout")(dim=dims, data_offset=0)
+    return node.msg(FLOATS)(layout=layout, data=node.pack(np.concatenate([[float(key)], state]).astype(np.float64)))
+
+
+def read_state(msg, size: int) -> tuple[int, np.ndarray]:
+    """(key, (size,) float32) from a ``sub_state`` message."""
+    rec = read_record(msg, ("key",), extra=True)
+    if rec["rest"].size != size:
+        raise ProtocolError(f"sub_state must hold {size} state values, got {rec['rest'].size}")
+    return int(rec["key"]), rec["rest"].astype(np.float32)
+
+
+def make_image(node, key: int, pixels: np.ndarray, frame_id: str) -> object:
+    """``sensor_msgs/Image`` rgb8 of (H, W, 3) uint8 ``pixels``, stamped with ``key``."""
+    h, w, _ = pixels.shape
+    header = make_header(node, key, frame_id)
+    return node.msg(IMAGE)(header=header, height=h, width=w, encoding="rgb8", is_bigendian=0, step=w * 3,
+                           data=node.pack(np.ascontiguousarray(pixels, np.uint8).reshape(-1)))
+
+
+def read_image(msg, height: int, width: int) -> tuple[int, np.ndarray]:
+    """(key, (height, width, 3) uint8) from an rgb8 Image of exactly that size."""
+    if msg.encoding != "rgb8":
+        raise ProtocolError(f"image encoding must be rgb8, got {msg.encoding!r}")
+    if (msg.height, msg.width) != (height, width) or msg.step != width * 3:
+        raise ProtocolError(f"image must be {height}x{width} (step {width * 3}), "
+                            f"got {msg.height}x{msg.width} (step {msg.step})")
+    data = as_array(msg.data, np.uint8)
+    if data.size != height * width * 3:
+        raise ProtocolError(f"image data must hold {height * width * 3} bytes, got {data.size}")
+    key = key_of(msg.header.stamp)
+    if not 0 < key < MAX_KEY:
+        raise ProtocolError(f"image stamp {key} ns is not a valid step key")
+    return key, data.reshape(height, width, 3)
+
+
+def check_index(value: float, n: int, what: str, allow_none: bool = False) -> int:
+    """``value`` as an int in [0, n) (or -1 when ``allow_none``)."""
+    if not float(value).is_integer() or not (-1 if allow_none else 0) <= value < n:
+        raise ProtocolError(f"{what} {value!r} is out of range [0, {n})")
+    return int(value)
+
+
+def finite(value: float, what: str) -> float:
+    if not math.isfinite(value):
+        raise ProtocolError(f"{what} is not finite: {value!r}")
+    return float(value)
+
+
+def as_bytes(data) -> bytes:
+    """A ``uint8[]`` field as bytes."""
+    return as_array(data, np.uint8).tobytes()
+
+
+def make_weights(node, payload: bytes, updates: int) -> object:
+    """``std_msgs/UInt8MultiArray`` of safetensors bytes; the layout label says
+    ``safetensors update=<n>`` (the learner's update count when they were taken)."""
+    dim = node.msg("std_msgs/msg/MultiArrayDimension")(label=f"safetensors update={updates}", size=len(payload),
+                                                       stride=len(payload))
+    layout = node.msg("std_msgs/msg/MultiArrayLayout")(dim=[dim], data_offset=0)
+    return node.msg(BYTES)(layout=layout, data=node.pack(np.frombuffer(payload, np.uint8)))
+
+
+def read_weights_version(msg) -> int:
+    """The learner update count in a weights message's layout label (0 if absent)."""
+    label = msg.layout.dim[0].label if len(msg.layout.dim) else ""
+    _, _, n = label.partition("update=")
+    return int(n) if n.isdigit() else 0

@@ -16,6 +16,7 @@ from hdrqn_ros import __version__
 EPILOG = """examples:
   hdrqn train --algo hdrqn-v2 --env hdrqn/GridWorld-2Goals-v0 --episodes 2000 --out runs/v2
   hdrqn train --config config/exp3_gridworld_2goals.yaml --algo hdqn --seed 1 --out runs/hdqn-s1
+  hdrqn up --episodes 300 --out runs/graph     # the same training over the ROS 2 node graph
   hdrqn eval --checkpoint runs/v2/checkpoints/last.pt --episodes 200
   hdrqn plot runs/v2 runs/hdqn-s1 --out curves.png
   hdrqn envs
@@ -50,6 +51,30 @@ def _add_train(sub) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def _add_up(sub) -> None:
+    from hdrqn_ros.config import ALGOS
+    from hdrqn_ros.envs.registration import ENV_IDS
+
+    p = sub.add_parser("up", help="train over the ROS 2 node graph: each node a separate process on Cyclone DDS",
+                       description="Start the environment, critic, meta-controller, sub-controller and learner "
+                                   "nodes as OS processes (no ROS install needed), show a live status line, and "
+                                   "stop them all when the learner finishes or on Ctrl-C. DDS stays on the "
+                                   "loopback interface unless --interface is given. Node logs go to RUN_DIR/logs/.")
+    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory")
+    p.add_argument("--config", action="append", default=[], metavar="FILE", help="YAML training config (repeatable)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override any config key")
+    p.add_argument("--algo", choices=ALGOS, help="algorithm (default hdrqn-v2)")
+    p.add_argument("--env", choices=ENV_IDS, metavar="ENV_ID", help="environment id")
+    p.add_argument("--episodes", type=int, help="training episodes")
+    p.add_argument("--seed", type=int, help="seed (group i's environment uses seed + 1000 i)")
+    p.add_argument("--view", help="observation window: 3, 5, 11 or full (gridworld domains)")
+    p.add_argument("--groups", type=int, default=1, help="environment/controller groups feeding the learner")
+    p.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)")
+    p.add_argument("--interface", help="network interface for DDS (default: loopback only)")
+    p.add_argument("--no-respawn", action="store_true", help="do not restart nodes that exit unexpectedly")
+    p.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
+
+
 def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="run greedy evaluation episodes of a checkpoint")
     p.add_argument("--checkpoint", required=True, help="path to a checkpoint (RUN_DIR/checkpoints/last.pt)")
@@ -78,39 +103,99 @@ def build_parser() -> argparse.ArgumentParser:
         description="Hierarchical deep recurrent Q-learning (hDRQN) on partially observable hierarchical tasks.")
     parser.add_argument("--version", action="version", version=f"hdrqn_ros {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for add in (_add_train, _add_eval, _add_plot, _add_envs):
+    for add in (_add_train, _add_up, _add_eval, _add_plot, _add_envs):
         add(sub)
     return parser
 
 
 # -- commands -----------------------------------------------------------------------------
-def cmd_train(args) -> int:
+def _config_from_args(args, **flags):
+    """The TrainConfig of a ``train``/``up`` command line: files, then --set, then flags."""
     from hdrqn_ros.config import build_config, parse_set
-    from hdrqn_ros.training.plots import plot_runs
-    from hdrqn_ros.training.trainer import Trainer
 
     overrides = parse_set(args.set)
     if args.view is not None:
         view = args.view if args.view == "full" else _int(args.view, "--view")
         overrides.setdefault("env_kwargs", {})["view"] = view
-    run_dir = Path(args.out)
     files = list(args.config)
+    run_dir = Path(args.out)
     if args.resume and not files and (run_dir / "config.yaml").exists():
         files = [run_dir / "config.yaml"]
-    flags = dict(algo=args.algo, env=args.env, episodes=args.episodes, seed=args.seed, num_envs=args.num_envs,
-                 device=args.device, eval_every=args.eval_every)
-    cfg = build_config(files, **{**overrides, **{k: v for k, v in flags.items() if v is not None}})
+    flags.update(algo=args.algo, env=args.env, episodes=args.episodes, seed=args.seed)
+    return build_config(files, **{**overrides, **{k: v for k, v in flags.items() if v is not None}})
+
+
+def _done_line(summary: dict, run_dir: Path, how: str) -> str:
+    ev = summary.get("final_eval") or {}
+    return (f"done: {summary['episodes']} episodes, {summary['env_steps']} env steps in {summary['wall_s']} s "
+            f"({summary['env_steps_per_s']} steps/s{how}); greedy eval: success {ev.get('success', float('nan')):.2f}, "
+            f"steps {ev.get('steps', float('nan')):.1f}, reward {ev.get('reward', float('nan')):.2f}; "
+            f"curves: {run_dir / 'curves.png'}")
+
+
+def cmd_train(args) -> int:
+    from hdrqn_ros.training.plots import plot_runs
+    from hdrqn_ros.training.trainer import Trainer
+
+    run_dir = Path(args.out)
+    cfg = _config_from_args(args, num_envs=args.num_envs, device=args.device, eval_every=args.eval_every)
     print(f"training {cfg.algo} on {cfg.env} {cfg.env_kwargs} for {cfg.episodes} episodes "
           f"({cfg.num_envs} envs, seed {cfg.seed}) -> {run_dir}", file=sys.stderr)
     trainer = Trainer(cfg, run_dir, resume=args.resume, progress=not args.no_progress)
     summary = trainer.run()
     plot_runs([run_dir], run_dir / "curves.png")
-    ev = summary.get("final_eval") or {}
-    print(f"done: {summary['episodes']} episodes, {summary['env_steps']} env steps in {summary['wall_s']} s "
-          f"({summary['env_steps_per_s']} steps/s); greedy eval: success {ev.get('success', float('nan')):.2f}, "
-          f"steps {ev.get('steps', float('nan')):.1f}, reward {ev.get('reward', float('nan')):.2f}; "
-          f"curves: {run_dir / 'curves.png'}")
+    print(_done_line(summary, run_dir, ""))
     return 0
+
+
+def cmd_up(args) -> int:
+    import yaml
+
+    from hdrqn_ros.graph import graph_processes, write_params
+    from hdrqn_ros.supervisor import Supervisor
+    from hdrqn_ros.training.plots import plot_runs
+
+    run_dir = Path(args.out)
+    if args.groups < 1:
+        raise UsageError(f"--groups must be >= 1, got {args.groups}")
+    if (run_dir / "checkpoints" / "last.pt").exists() and not args.resume:
+        raise UsageError(f"{run_dir} already holds a run; pass --resume to continue it or choose another --out")
+    cfg = _config_from_args(args)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "summary.json").unlink(missing_ok=True)
+    config_file = run_dir / "graph-config.yaml"
+    config_file.write_text(yaml.safe_dump(cfg.model_dump(), sort_keys=False))
+    params = write_params(cfg, run_dir, args.groups, config_file, interface=args.interface)
+    env = {}
+    if args.domain_id is not None:
+        if not 0 <= args.domain_id <= 232:
+            raise UsageError(f"--domain-id must be in 0..232, got {args.domain_id}")
+        env["ROS_DOMAIN_ID"] = str(args.domain_id)
+    specs = graph_processes(cfg, params, args.groups, respawn=not args.no_respawn)
+    print(f"starting {len(specs)} node processes for {cfg.algo} on {cfg.env} {cfg.env_kwargs} "
+          f"({args.groups} group(s), {cfg.episodes} episodes, DDS on {args.interface or 'loopback'}) -> {run_dir}; "
+          f"node logs in {run_dir / 'logs'}", file=sys.stderr)
+    summary_path = run_dir / "summary.json"
+    supervisor = Supervisor(specs, env=env, log_dir=run_dir / "logs", status=lambda: _graph_status(run_dir))
+    rc = supervisor.run(until=summary_path.exists)
+    if not summary_path.exists():
+        print(f"hdrqn up: stopped before the learner finished (exit {rc}); the last checkpoint is in "
+              f"{run_dir / 'checkpoints'}; continue with --resume", file=sys.stderr)
+        return rc or 1
+    summary = json.loads(summary_path.read_text())
+    plot_runs([run_dir], run_dir / "curves.png")
+    print(_done_line(summary, run_dir, f" over {len(specs)} node processes, {summary.get('updates', 0)} updates"))
+    return 0
+
+
+def _graph_status(run_dir: Path) -> str:
+    try:
+        s = json.loads((run_dir / "status.json").read_text())
+    except (OSError, ValueError):
+        return "waiting for the learner"
+    succ = "-" if s.get("success_last100") is None else f"{s['success_last100']:.2f}"
+    return (f"episode {s['episodes']}/{s['target_episodes']} steps {s['env_steps']} ({s['steps_per_s']:.0f}/s) "
+            f"updates {s['updates']} success {succ} eps {s['eps_sub']:.2f}/{s['eps_meta']:.2f}")
 
 
 def cmd_eval(args) -> int:
@@ -161,7 +246,7 @@ def _int(text: str, flag: str) -> int:
         raise UsageError(f"{flag} must be an integer or 'full', got {text!r}") from None
 
 
-COMMANDS = {"train": cmd_train, "eval": cmd_eval, "plot": cmd_plot, "envs": cmd_envs}
+COMMANDS = {"train": cmd_train, "up": cmd_up, "eval": cmd_eval, "plot": cmd_plot, "envs": cmd_envs}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -189,19 +189,27 @@ class Supervisor:
         return dict(self.returncodes)
 
     def status_line(self) -> str:
-        """One line: per-process state (up/exited/respawning, restarts) + status()."""
-        parts = []
+        """One line: how many processes are up, restarts, anything not up, then status()."""
+        up, trouble = 0, []
         for n in self.specs:
             p = self._procs.get(n)
-            st = ("respawning" if n in self._respawn_at else "not started" if p is None
-                  else f"up pid={p.pid}" if p.returncode is None else f"exited rc={p.returncode}")
-            parts.append(f"{n}: {st}" + (f" restarts={self.restarts[n]}" if self.restarts[n] else ""))
-        line = "[supervisor] " + " | ".join(parts)
+            if n in self._respawn_at:
+                trouble.append(f"{n} respawning")
+            elif p is None:
+                trouble.append(f"{n} not started")
+            elif p.returncode is None:
+                up += 1
+            else:
+                trouble.append(f"{n} exited rc={p.returncode}")
+        restarts = sum(self.restarts.values())
+        line = f"[{up}/{len(self.specs)} up" + (f", {restarts} restarts" if restarts else "") + "]"
+        if trouble:
+            line += " " + ", ".join(trouble)
         if self.status is not None:
             try:
-                line += " || " + self.status()
+                line += " " + self.status()
             except Exception as e:  # a broken status callback must not kill the graph
-                line += f" || status error: {e!r}"
+                line += f" status error: {e!r}"
         return line
 
     def run(self, until: Callable[[], bool] | None = None, refresh_s: float = 0.5) -> int:

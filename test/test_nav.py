@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hdrqn_ros.envs.gridworld import AGENT, FREE, PALETTE, WALL, GridWorldBatch
+from hdrqn_ros.envs.gridworld import AGENT, FREE, GOAL0, PALETTE, WALL, GridWorldBatch
 from hdrqn_ros.middleware.messages import message_class, to_rosbags, typestore
 from hdrqn_ros.nodes.nav import (OCCUPANCY_GRID, TWIST, TWIST_STAMPED, ActionTable, NavConfigError, SubgoalTable,
                                  costmap_to_observation)
@@ -233,21 +233,40 @@ def test_origin_offset_and_rclpy_style_data():
     assert [row[4] for row in cells] == [WALL_RGB] * 5
 
 
-@pytest.mark.parametrize("layout, agent, view", [("gridworld", (2, 2), 5), ("fourrooms", (4, 4), 5),
-                                                 ("fourrooms", (4, 6), 3), ("fourrooms", (5, 3), 5)])
-def test_matches_the_simulator_observation(layout, agent, view):
-    """A costmap drawn from the simulator's walls (5 costmap cells per grid cell) gives the
-    simulator's own observation, pixel for pixel."""
+@pytest.mark.parametrize("layout, agent, view, goals", [
+    ("gridworld", (2, 2), 5, [(9, 9), (9, 8)]), ("fourrooms", (4, 4), 5, [(9, 9), (9, 8)]),
+    ("fourrooms", (4, 6), 3, [(9, 9), (9, 8)]), ("fourrooms", (5, 3), 5, [(9, 9), (9, 8)]),
+    ("gridworld", (3, 3), 5, [(2, 4), (5, 2)]), ("fourrooms", (7, 7), 5, [(8, 9), (6, 6)]),
+])
+def test_matches_the_simulator_observation(layout, agent, view, goals):
+    """A costmap drawn from the simulator's walls (5 costmap cells per grid cell), with the
+    goals at their cells' centres, gives the simulator's own observation, pixel for pixel."""
     env = GridWorldBatch(1, layout=layout, view=view)
     env.reset(seed=0)
-    env.set_state(0, agent, [(9, 9), (9, 8)], [(8, 9), (9, 7)])  # goals and fires out of view
+    env.set_state(0, agent, goals, [(9, 1), (1, 9)])  # fires out of view
     k, res = 5, 0.05
     walls = env.walls[::-1]  # costmap row 0 = map row 10 (image up = +y)
     cost = np.kron(walls.astype(np.int8) * 100, np.ones((k, k), np.int8))
-    r, c = agent
-    xy = ((c + 0.5) * k * res, (10 - r + 0.5) * k * res)
-    ours = costmap_to_observation(grid(cost, res=res), robot_xy=xy, view_cells=view)
+
+    def xy(rc):
+        return (rc[1] + 0.5) * k * res, (10 - rc[0] + 0.5) * k * res
+
+    ours = costmap_to_observation(grid(cost, res=res), robot_xy=xy(agent), view_cells=view,
+                                  goals_xy=[xy(g) for g in goals])
     np.testing.assert_array_equal(ours, env.render_obs()[0])
+
+
+def test_goals_are_drawn_in_their_colours_when_in_view():
+    msg = grid(np.zeros((60, 60)))
+    robot = (1.525, 1.525)
+    goals = [(robot[0] + 0.25, robot[1]), (robot[0], robot[1] + 0.5), (robot[0] + 2.0, robot[1])]
+    cells = colours(costmap_to_observation(msg, goals_xy=goals))
+    assert cells[2][3] == tuple(PALETTE[GOAL0]) and cells[0][2] == tuple(PALETTE[GOAL0 + 1])
+    assert sum(row.count(tuple(PALETTE[GOAL0 + 2])) for row in cells) == 0  # out of view
+    facing_x = colours(costmap_to_observation(msg, goals_xy=goals[:2], robot_yaw=0.0))
+    assert facing_x[1][2] == tuple(PALETTE[GOAL0]) and facing_x[2][0] == tuple(PALETTE[GOAL0 + 1])
+    with pytest.raises(ValueError, match="at most 3 goals"):
+        costmap_to_observation(msg, goals_xy=[robot] * 4)
 
 
 def test_deserialized_costmap_gives_the_same_observation():
@@ -262,6 +281,7 @@ def test_deserialized_costmap_gives_the_same_observation():
 @pytest.mark.parametrize("kwargs, problem", [
     ({"msg": grid(np.zeros((4, 4)), res=0.0)}, "resolution must be positive"),
     ({"msg": grid(np.zeros((4, 4))), "view_cells": 4}, "view_cells must be a positive odd integer"),
+    ({"msg": grid(np.zeros((4, 4))), "view_cells": -3}, "view_cells must be a positive odd integer"),
     ({"msg": grid(np.zeros((4, 4))), "lethal": 0}, "lethal must be in"),
     ({"msg": grid(np.zeros((4, 4))), "cell_size_m": -1.0}, "cell_size_m must be positive"),
 ])

@@ -160,8 +160,9 @@ def test_ctrl_c_driver(sig):
         pids = json.loads(proc.stdout.readline())
         assert set(pids) == {"a", "b"}
         # the first status line is printed inside run(), i.e. after its handlers are installed
-        while not proc.stdout.readline().startswith("[supervisor]"):
-            pass
+        line = "x"
+        while line and not line.startswith("["):  # "" at EOF: the driver died, the wait below fails
+            line = proc.stdout.readline()
         proc.send_signal(sig)  # Ctrl-C / `kill <pid of hdrqn up>`
         assert proc.wait(timeout=10) == 128 + sig  # 130 / 143
     finally:

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from hdrqn_ros.envs.gridworld import AGENT, FREE, PALETTE, WALL
+from hdrqn_ros.envs.gridworld import AGENT, FREE, GOAL0, GOAL_NAMES, PALETTE, WALL
 from hdrqn_ros.middleware.messages import as_array
 
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
@@ -160,7 +160,7 @@ class ActionTable:
 
 
 def costmap_to_observation(msg, robot_xy=None, view_cells: int = 5, size: int = 44, *, robot_yaw=None,
-                           cell_size_m: float | None = None, lethal: int = LETHAL) -> np.ndarray:
+                           cell_size_m: float | None = None, lethal: int = LETHAL, goals_xy=()) -> np.ndarray:
     """``(size, size, 3) uint8``: a gridworld-style observation of an OccupancyGrid.
 
     A ``view_cells`` x ``view_cells`` window of simulator cells of side ``cell_size_m``
@@ -170,8 +170,9 @@ def costmap_to_observation(msg, robot_xy=None, view_cells: int = 5, size: int = 
     a wall if any sample has cost >= ``lethal``, is unknown (-1) or lies outside the grid,
     else free (max aggregation). The centre cell shows the agent. ``robot_yaw=None``: image
     up = costmap +y (north-up, like the simulator's allocentric moves); a yaw (rad): image
-    up = the robot's heading (egocentric). The costmap origin's orientation is assumed
-    identity (as Nav2 publishes it).
+    up = the robot's heading (egocentric). ``goals_xy``: optional ``(x, y)`` of subgoal
+    ``g = 0, 1, ...`` (costmap frame), drawn in goal ``g``'s colour when inside the window.
+    The costmap origin's orientation is assumed identity (as Nav2 publishes it).
     Upscaled by nearest neighbour exactly like the simulator.
     """
     info = msg.info
@@ -181,8 +182,8 @@ def costmap_to_observation(msg, robot_xy=None, view_cells: int = 5, size: int = 
         raise NavConfigError(f"costmap resolution must be positive, got {res}")
     if w * h == 0 or w * h != data.size:
         raise NavConfigError(f"costmap is {w}x{h} cells but has {data.size} data values")
-    if isinstance(view_cells, bool) or not isinstance(view_cells, (int, np.integer)) or view_cells < 1 \
-            or view_cells % 2 == 0:
+    odd = isinstance(view_cells, (int, np.integer)) and not isinstance(view_cells, bool) and view_cells % 2 == 1
+    if not odd or view_cells < 1:
         raise ValueError(f"view_cells must be a positive odd integer, got {view_cells!r}")
     if not 1 <= lethal <= 100:
         raise ValueError(f"lethal must be in [1, 100], got {lethal!r}")
@@ -203,6 +204,14 @@ def costmap_to_observation(msg, robot_xy=None, view_cells: int = 5, size: int = 
     cost = np.where(inside, data.reshape(h, w)[row.clip(0, h - 1), col.clip(0, w - 1)], -1).astype(np.int16)
     blocked = ((cost >= lethal) | (cost < 0)).reshape(view_cells, n, view_cells, n).any(axis=(1, 3))
     codes = np.where(blocked, WALL, FREE)
+    if len(goals_xy) > len(GOAL_NAMES):
+        raise ValueError(f"at most {len(GOAL_NAMES)} goals can be drawn, got {len(goals_xy)}")
+    for g, (gx, gy) in enumerate(goals_xy):  # window cell of the goal, as for the samples above
+        dx, dy = float(gx) - rx, float(gy) - ry
+        r = math.floor(view_cells / 2 - (dx * fx + dy * fy) / cell)  # up = d . heading
+        c = math.floor(view_cells / 2 + (dx * fy - dy * fx) / cell)  # right = d . (fy, -fx)
+        if 0 <= r < view_cells and 0 <= c < view_cells:
+            codes[r, c] = GOAL0 + g
     codes[view_cells // 2, view_cells // 2] = AGENT
     counts = np.bincount((np.arange(size) * view_cells) // size, minlength=view_cells)  # as the simulator
     return np.repeat(np.repeat(PALETTE[codes], counts, axis=0), counts, axis=1)

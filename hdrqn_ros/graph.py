@@ -1,0 +1,73 @@
+"""The training node graph as OS processes: what ``hdrqn up`` starts.
+
+One learner, and per environment group (namespace ``/group<i>``, or ``/`` for a single
+group) an environment, a sub-controller and, for hierarchical agents, a critic and a
+meta-controller. The parameters go into ``RUN_DIR/params.yaml``, a standard ROS 2
+parameters file (``/**`` for what all nodes share), passed with ``--params-file`` as
+``ros2 launch`` would.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import yaml
+
+from hdrqn_ros.agents.algorithms import ALGO_SPECS
+from hdrqn_ros.config import TrainConfig
+from hdrqn_ros.supervisor import ProcessSpec
+
+NODE_MODULES = {"environment": "hdrqn_ros.nodes.environment", "critic": "hdrqn_ros.nodes.critic",
+                "meta_controller": "hdrqn_ros.nodes.controllers:main_meta",
+                "sub_controller": "hdrqn_ros.nodes.controllers:main_sub", "learner": "hdrqn_ros.nodes.learner"}
+
+
+def group_namespaces(groups: int) -> list[str]:
+    return ["/"] if groups == 1 else [f"/group{i}" for i in range(groups)]
+
+
+def view_parameter(cfg: TrainConfig) -> str:
+    return str(cfg.env_kwargs.get("view", 5))
+
+
+def write_params(cfg: TrainConfig, run_dir: Path, groups: int, config_file: Path, interface: str | None = None, extra: dict | None = None) -> Path:
+    """Write ``run_dir/params.yaml`` for the graph of ``cfg`` and return its path."""
+    shared = {"algo": cfg.algo, "env": cfg.env, "view": view_parameter(cfg), "seed": cfg.seed}
+    if interface:
+        shared["dds_interface"] = interface
+    doc = {
+        "/**": {"ros__parameters": shared},
+        "environment": {"ros__parameters": {"wait_for_learner": True}},
+        "meta_controller": {"ros__parameters": {"meta_state": cfg.meta_state}},
+        "sub_controller": {"ros__parameters": {"meta_state": cfg.meta_state}},
+        "learner": {"ros__parameters": {"config": str(config_file), "episodes": cfg.episodes,
+                                        "run_dir": str(run_dir), "groups": group_namespaces(groups)}},
+    }
+    for node, values in (extra or {}).items():
+        doc.setdefault(node, {"ros__parameters": {}})["ros__parameters"].update(values)
+    path = run_dir / "params.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+def _command(node: str) -> list[str]:
+    module, _, func = NODE_MODULES[node].partition(":")
+    if not func:
+        return [sys.executable, "-m", module]
+    return [sys.executable, "-c", f"import sys; from {module} import {func} as m; sys.exit(m())"]
+
+
+def graph_processes(cfg: TrainConfig, params: Path, groups: int, respawn: bool = True) -> list[ProcessSpec]:
+    """The processes of the graph: per group its nodes (seeded ``seed + 1000 * i``), then the learner."""
+    hierarchical = ALGO_SPECS[cfg.algo].hierarchical
+    nodes = ["environment", "critic", "meta_controller", "sub_controller"] if hierarchical else \
+        ["environment", "sub_controller"]
+    specs = []
+    for i, ns in enumerate(group_namespaces(groups)):
+        for node in nodes:
+            argv = _command(node) + ["--ros-args", "--params-file", str(params), "-r", f"__ns:={ns}",
+                                     "-p", f"seed:={cfg.seed + 1000 * i}"]
+            specs.append(ProcessSpec(name=f"{ns.strip('/') or 'graph'}/{node}", argv=argv, respawn=respawn))
+    learner_argv = _command("learner") + ["--ros-args", "--params-file", str(params), "-p", "resume:=true"]
+    specs.append(ProcessSpec(name="learner", argv=learner_argv, respawn=respawn, required=not respawn))
+    return specs

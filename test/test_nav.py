@@ -33,10 +33,10 @@ def write(tmp_path, text, name="table.yaml"):
 
 # --------------------------------------------------------------------------- tables
 def test_shipped_tables_load():
-    sub = SubgoalTable.load(CONFIG / "nav2_subgoals.yaml", num_subgoals=2)
+    sub = SubgoalTable.load(CONFIG / "nav2/subgoals.yaml", num_subgoals=2)
     assert len(sub) == 2 and sub.frame_id == "map"
     assert sub.poses[1] == (3.5, -1.0, 1.57)
-    act = ActionTable.load(CONFIG / "nav2_actions.yaml", num_actions=4)
+    act = ActionTable.load(CONFIG / "nav2/actions.yaml", num_actions=4)
     assert len(act) == 4 and not act.stamped and act.type_name == TWIST
     up, down, left, right = act.commands
     assert up["linear_x"] > 0 > down["linear_x"] and left["angular_z"] > 0 > right["angular_z"]

@@ -1,6 +1,7 @@
 """What every node executable shares: start-up, parameters, the spin loop, clean exit."""
 from __future__ import annotations
 
+import hashlib
 import signal
 import sys
 import threading
@@ -50,6 +51,11 @@ def domain_sizes(env_id: str, view: str) -> tuple[int, int]:
     return probe.num_actions, probe.num_subgoals
 
 
+def obs_digest(obs: np.ndarray) -> str:
+    """A short digest of an observation's bytes (step and transition logs)."""
+    return hashlib.blake2b(np.ascontiguousarray(obs).tobytes(), digest_size=8).hexdigest()
+
+
 class ActingNetwork:
     """A controller's Q-network for acting in a node: greedy/epsilon choices, weights
     from a checkpoint and from the learner's ``/learner/*_weights`` topic."""
@@ -86,8 +92,9 @@ class ActingNetwork:
         except (WeightsError, ValueError) as exc:
             self.node.logger.warning("rejected %s weights on %s: %s", self.role, P.WEIGHTS[self.role], exc)
             return
+        if self.weights_version < 0 or version // 100 > self.weights_version // 100:
+            self.node.logger.info("acting with the learner's %s weights of update %d", self.role, version)
         self.weights_version = version
-        self.node.logger.debug("%s weights updated (learner update %d)", self.role, version)
 
     def on_credit(self, credit: dict) -> None:
         if self.fixed_epsilon is None:
@@ -98,7 +105,7 @@ class ActingNetwork:
         from hdrqn_ros.training.rollout import epsilon_greedy
 
         with torch.inference_mode():
-            q, state = self.net.act(torch.as_tensor(x[None]), state)
+            q, state = self.net.act(torch.tensor(x[None]), state)  # a copy: x may be read-only
         inv = None if invalid < 0 else np.array([invalid])
         return int(epsilon_greedy(q.numpy(), self.epsilon, self.rng, invalid=inv)[0]), state
 
@@ -110,11 +117,11 @@ def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None) 
     """Open the middleware, build the node object, spin until it finishes, Ctrl-C or
     SIGTERM, then clean up (the object's ``close()`` first, then the middleware).
 
-    Exit codes: the object's ``exit_code`` (0), 2 for bad parameters, arguments or
-    checkpoints, 130 when interrupted."""
+    SIGINT (Ctrl-C, what ``ros2 launch`` sends) and SIGTERM are a normal stop: exit code
+    the object's ``exit_code`` (0). 2 for bad parameters, arguments or checkpoints."""
     argv = list(sys.argv if argv is None else argv)
     stopped = threading.Event()
-    previous = signal.signal(signal.SIGTERM, lambda *_: stopped.set())
+    previous = {sig: signal.signal(sig, lambda *_: stopped.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     mw = obj = None
     try:
         mw = open_middleware(argv)
@@ -131,4 +138,5 @@ def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None) 
             obj.close()
         if mw is not None:
             mw.shutdown()
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

@@ -9,6 +9,7 @@ is re-published, so a controller that (re)joins late picks the loop up again.
 """
 from __future__ import annotations
 
+import json
 import time
 
 import numpy as np
@@ -17,12 +18,13 @@ from hdrqn_ros.envs.domain import NO_SUBGOAL
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
 from hdrqn_ros.nodes import protocol as P
-from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, env_kwargs, run_node
+from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, env_kwargs, obs_digest, run_node
 
 PARAMETERS = {**ENV_DEFAULTS, "step_period": 0.01, "frame_id": "hdrqn_map", "action_timeout": 5.0,
-              "wait_for_learner": False, "max_episodes": 0}
+              "wait_for_learner": False, "max_episodes": 0, "step_log": ""}
 """``step_period``: simulated seconds per step (the key increment); ``max_episodes``: stop
-after this many episodes (0: run until stopped)."""
+after this many episodes (0: run until stopped); ``step_log``: append every step to this
+JSON-lines file (the ground truth that learner transition logs are checked against)."""
 
 
 class EnvironmentNode:
@@ -47,6 +49,7 @@ class EnvironmentNode:
         self.key = 0
         self.pending_action: int | None = None
         self.finished = False
+        self.step_log = open(p["step_log"], "a", buffering=1) if p["step_log"] else None
         self.obs = self.batch.reset(seed=p["seed"])[0]
         self._begin_episode()
 
@@ -104,18 +107,23 @@ class EnvironmentNode:
             return
         action, self.pending_action = self.pending_action, None
         prev_key = self.key
+        self.obs_digest_before = obs_digest(self.obs) if self.step_log is not None else ""
         step = self.batch.step(np.array([action]))
         self.steps += 1
         self.t += 1
         self.obs = step.obs[0]
         decision = step.at_subgoal[0] >= 0 or step.life_lost[0]
-        self.step_record = {"prev_key": prev_key, "env_steps": self.steps, "episode": self.episode, "t": self.t, "action": action,
-                            "extrinsic": step.extrinsic[0], "classical": step.classical[0],
-                            "terminated": step.terminated[0], "truncated": step.truncated[0],
-                            "at_subgoal": step.at_subgoal[0], "collected": step.collected[0],
-                            "hit_obstacle": step.hit_obstacle[0], "life_lost": step.life_lost[0],
-                            "success": step.success[0], "decision_point": decision and not step.done[0]}
+        self.step_record = {"prev_key": prev_key, "env_steps": self.steps, "episode": self.episode, "t": self.t,
+                            "action": action, "extrinsic": float(step.extrinsic[0]),
+                            "classical": float(step.classical[0]), "terminated": bool(step.terminated[0]),
+                            "truncated": bool(step.truncated[0]), "at_subgoal": int(step.at_subgoal[0]),
+                            "collected": bool(step.collected[0]), "hit_obstacle": bool(step.hit_obstacle[0]),
+                            "life_lost": bool(step.life_lost[0]), "success": bool(step.success[0]),
+                            "decision_point": bool(decision and not step.done[0])}
         self._new_key()
+        if self.step_log is not None:
+            self.step_log.write(json.dumps({**self.step_record, "key": self.key, "next_obs": obs_digest(self.obs),
+                                            "obs": self.obs_digest_before}) + "\n")
         self._publish()
         if step.done[0]:
             self.episode += 1
@@ -138,14 +146,18 @@ class EnvironmentNode:
             return
         if self.pending_action is not None:
             self.node.logger.warning("step t=%d of episode %d waits for the learner: %d steps taken, credit %d "
-                                     "(is the learner running? topic %s)", self.t, self.episode, self.steps,
-                                     self.credit, self._topic(P.CREDIT))
+                                     "(is the learner running? topic %s); re-publishing the step", self.t,
+                                     self.episode, self.steps, self.credit, self._topic(P.CREDIT))
         else:
             self.node.logger.warning("no action for step t=%d of episode %d after %.1f s on %s (is the "
                                      "sub_controller running?); re-publishing the step", self.t, self.episode,
                                      waited, self._topic(P.ACTION))
-            self._publish()
+        self._publish()  # a (re)started peer learns where the loop is
         self.published_at = time.monotonic()
+
+    def close(self) -> None:
+        if self.step_log is not None:
+            self.step_log.close()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -28,7 +28,7 @@ from hdrqn_ros.config import build_config, parse_set
 from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
 from hdrqn_ros.nodes import protocol as P
-from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, check_algo, env_kwargs, run_node
+from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, check_algo, env_kwargs, obs_digest, run_node
 from hdrqn_ros.nodes.critic import step_batch
 from hdrqn_ros.nodes.follower import StepFollower, done
 from hdrqn_ros.training.episodes import EpisodeRecorder
@@ -37,11 +37,12 @@ from hdrqn_ros.training.rollout import StepRecord
 
 PARAMETERS = {**ENV_DEFAULTS, "config": "", "overrides": [""], "episodes": 1000, "run_dir": "runs/graph",
               "groups": ["/"], "resume": False, "weights_every": 25, "credit_window": 20, "max_owed_updates": 2,
-              "status_period": 1.0, "evaluate": True}
+              "status_period": 1.0, "evaluate": True, "transition_log": ""}
 """``config``: a training config YAML (``hdrqn train --config``); ``overrides``:
 ``key=value`` items like ``hdrqn train --set``; the parameters ``algo``, ``env``, ``view``,
 ``seed``, ``episodes`` win over both. ``resume``: continue from ``run_dir``'s checkpoint
-when there is one."""
+when there is one. ``transition_log``: append every assembled transition to this JSON-lines
+file (keys, action, rewards, flags, observation digests: for checking alignment)."""
 
 EPISODE_QUEUE = 256
 """Finished episodes waiting for the training thread (bounded; the credit keeps it short)."""
@@ -50,7 +51,7 @@ EPISODE_QUEUE = 256
 class GroupAssembler(StepFollower):
     """One environment group's messages -> :class:`StepRecord` rows -> replay episodes."""
 
-    def __init__(self, node, namespace: str, learner: Learner, episodes: "queue.Queue"):
+    def __init__(self, node, namespace: str, learner: Learner, episodes: "queue.Queue", log=None):
         super().__init__(node)
         self.ns = namespace.rstrip("/")
         self.learner, self.episodes = learner, episodes
@@ -63,6 +64,7 @@ class GroupAssembler(StepFollower):
         self.skipped = 0  # steps seen while waiting for an episode boundary
         self.lost_episodes = 0  # episodes cut short by missing messages or restarts
         self.open = False
+        self.log = log
         t = self.topic
         node.create_subscription(P.FLOATS, t(P.ENV_STEP), self.on_env_step, P.LEARNER_QOS)
         node.create_subscription(P.IMAGE, t(P.OBSERVATION), lambda m: self._image(P.OBSERVATION, m, 1), P.LEARNER_QOS)
@@ -178,10 +180,19 @@ class GroupAssembler(StepFollower):
             sub_terminal=np.array([sub_terminal]), option_extrinsic=np.array([self.option_extrinsic], np.float32),
             option_steps=np.array([self.option_steps]), meta_next_input=meta_next)
         self.transitions += 1
+        if self.log is not None:
+            self._log(step, action, subgoal, intrinsic, obs)
         for _, sub_ep, meta_ep, stats in self.recorder.add(record):
             self.episodes.put((self.ns or "/", sub_ep, meta_ep, stats))
             self.open = False
         self.prev_obs = obs
+
+    def _log(self, step: dict, action: int, subgoal: int, intrinsic: float, obs: np.ndarray) -> None:
+        row = {"group": self.ns or "/", **{f: step[f] for f in ("key", "prev_key", "episode", "t", "extrinsic",
+                                                                "classical", "terminated", "truncated")},
+               "action": action, "subgoal": subgoal, "intrinsic": intrinsic,
+               "obs": obs_digest(self.prev_obs), "next_obs": obs_digest(obs)}
+        self.log.write(json.dumps(row) + "\n")
 
     def publish_credit(self, window: int, owed_ok: bool, eps: tuple[float, float], epoch: float) -> None:
         credit = self.env_steps_seen + window if owed_ok else self.env_steps_seen
@@ -212,7 +223,9 @@ class LearnerNode:
             if p[key] < 1:
                 raise NodeConfigError(f"{key} must be >= 1, got {p[key]}")
         self.episodes: queue.Queue = queue.Queue(EPISODE_QUEUE)
-        self.groups = [GroupAssembler(node, ns, self.learner, self.episodes) for ns in p["groups"]]
+        self.transition_log = open(p["transition_log"], "a", buffering=1) if p["transition_log"] else None
+        self.groups = [GroupAssembler(node, ns, self.learner, self.episodes, self.transition_log)
+                       for ns in p["groups"]]
         self.weight_pubs = {c.name: node.create_publisher(P.BYTES, P.WEIGHTS[c.name], LATCHED_QOS)
                             for c in self.learner.agent.controllers}
         self.status_pub = node.create_publisher(P.STRING, P.STATUS, LATCHED_QOS)
@@ -331,6 +344,8 @@ class LearnerNode:
         if self.summary is None and self.exit_code == 0:
             self.learner.save()
         self.learner.log.close()
+        if self.transition_log is not None:
+            self.transition_log.close()
 
 
 def main(argv: list[str] | None = None) -> int:

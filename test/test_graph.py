@@ -1,0 +1,249 @@
+"""The node graph as real processes over real Cyclone DDS (loopback only; no fake bus)."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from itertools import count
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hdrqn_ros.config import build_config
+from hdrqn_ros.envs.registration import make_batch
+from hdrqn_ros.graph import graph_processes, write_params
+from hdrqn_ros.middleware.cyclone import CycloneMiddleware, _dds_qos
+from hdrqn_ros.middleware.messages import typestore, to_rosbags
+from hdrqn_ros.middleware.port import LATCHED_QOS, QoS
+from hdrqn_ros.nodes import protocol as P
+from hdrqn_ros.nodes.common import obs_digest
+from hdrqn_ros.supervisor import ProcessSpec, Supervisor
+
+ENV = "hdrqn/GridWorld-2Goals-v0"
+_domains = count((os.getpid() * 13) % 150 + 20)
+
+
+@pytest.fixture
+def domain(monkeypatch):
+    """A DDS domain of this test's own, so tests running side by side never meet."""
+    d = next(_domains) % 200 + 20
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(d))
+    monkeypatch.delenv("CYCLONEDDS_URI", raising=False)
+    return d
+
+
+def wait_for(cond, timeout: float, what: str, sup: Supervisor | None = None):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if sup is not None:
+            sup.poll()
+        value = cond()
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def read_jsonl(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def start_graph(tmp_path: Path, algo: str = "hdrqn-v2", episodes: int = 8, respawn: bool = False) -> Supervisor:
+    cfg = build_config([], algo=algo, env=ENV, episodes=episodes, seed=3, learning_starts=60, checkpoint_every=2,
+                       eval_episodes=4, update_every=5, sub={"batch_size": 2}, meta={"batch_size": 2})
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    config = run_dir / "config-in.yaml"
+    config.write_text(json.dumps(cfg.model_dump()))
+    params = write_params(cfg, run_dir, 1, config, extra={
+        "environment": {"step_log": str(tmp_path / "env_steps.jsonl")},
+        "learner": {"transition_log": str(tmp_path / "transitions.jsonl"), "weights_every": 5}})
+    sup = Supervisor(graph_processes(cfg, params, 1, respawn=respawn), log_dir=tmp_path / "logs", stop_timeout_s=5)
+    sup.start()
+    return sup
+
+
+def check_env_log_replays_in_process(env_rows: list[dict], seed: int = 3) -> None:
+    """The environment node's steps equal an in-process env stepped with the same seed and actions."""
+    batch = make_batch(ENV, 1)
+    obs = batch.reset(seed=seed)[0]
+    for row in env_rows:
+        assert row["obs"] == obs_digest(obs), f"observation mismatch before step key {row['key']}"
+        step = batch.step(np.array([row["action"]]))
+        assert row["next_obs"] == obs_digest(step.obs[0])
+        assert (row["extrinsic"], row["terminated"], row["truncated"]) == \
+            (float(step.extrinsic[0]), bool(step.terminated[0]), bool(step.truncated[0]))
+        obs = batch.reset_where(np.ones(1, bool))[0] if step.done[0] else step.obs[0]
+
+
+def check_transitions_match_env(transitions: list[dict], env_rows: list[dict]) -> None:
+    """Every transition the learner assembled is the environment's step with that key."""
+    by_key = {r["key"]: r for r in env_rows}
+    assert transitions, "the learner assembled no transitions"
+    for tr in transitions:
+        env = by_key[tr["key"]]
+        for field in ("prev_key", "action", "extrinsic", "classical", "terminated", "truncated", "obs", "next_obs"):
+            assert tr[field] == env[field], f"{field} of transition {tr['key']}: {tr[field]} != {env[field]}"
+
+
+def test_payload_bytes_equal_rosbags_cdr(domain):
+    """Bytes taken off a real DDS reader equal rosbags' CDR of the same message, per published type."""
+    from cyclonedds._clayer import ddspy_take
+    from cyclonedds.core import InstanceState, SampleState, ViewState
+    from cyclonedds.sub import DataReader
+
+    mw = CycloneMiddleware([])
+    try:
+        node = mw.create_node("probe")
+        rng = np.random.default_rng(0)
+        samples = {
+            P.IMAGE: P.make_image(node, 123_000_000, rng.integers(0, 255, (44, 44, 3), dtype=np.uint8), "map"),
+            P.FLOATS: P.make_record(node, P.FLOATS, P.CRITIC_FIELDS, [5e6, -1.0, 0, 1, 1]),
+            P.INTS: P.make_record(node, P.INTS, P.ACTION_FIELDS, [5_000_000, 3]),
+            P.BYTES: P.make_weights(node, b"\x01\x02\x03", 7),
+            P.STRING: node.msg(P.STRING)(data='{"episodes": 3}'),
+            P.POSE_STAMPED: P.make_pose(node, 10, "map", 1.5, -2.0),
+            P.CLOCK_TYPE: node.msg(P.CLOCK_TYPE)(clock=P.make_time(node, 3_000_000_123)),
+            "geometry_msgs/msg/Twist": node.msg("geometry_msgs/msg/Twist")(
+                linear=node.msg("geometry_msgs/msg/Vector3")(x=0.2, y=0.0, z=0.0)),
+        }
+        store = typestore()
+        for i, (type_name, msg) in enumerate(samples.items()):
+            topic = f"/probe{i}"
+            pub = node.create_publisher(type_name, topic, LATCHED_QOS)
+            reader = DataReader(mw.participant, mw.topic(topic, type(msg)), qos=_dds_qos(LATCHED_QOS))
+            pub.publish(msg)
+            raw = wait_for(lambda: ddspy_take(reader._ref, SampleState.Any | ViewState.Any | InstanceState.Any, 1),
+                           5, f"a sample of {type_name}")
+            wire = bytes(raw[0][0])
+            expected = bytes(store.serialize_cdr(to_rosbags(msg), type_name))
+            assert wire[:4] == b"\x00\x01\x00\x00", "XCDR1 little-endian encapsulation"
+            assert wire[:len(expected)] == expected and not any(wire[len(expected):]), type_name
+    finally:
+        mw.shutdown()
+
+
+def test_graph_trains_and_transitions_align(domain, tmp_path):
+    sup = start_graph(tmp_path, episodes=8)
+    try:
+        wait_for(lambda: (tmp_path / "run" / "summary.json").exists(), 150, "the learner to finish", sup)
+    finally:
+        sup.stop()
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["episodes"] == 8 and summary["updates"] > 0
+    env_rows, transitions = read_jsonl(tmp_path / "env_steps.jsonl"), read_jsonl(tmp_path / "transitions.jsonl")
+    assert len(transitions) >= 200
+    check_env_log_replays_in_process(env_rows)
+    check_transitions_match_env(transitions, env_rows)
+    sub_log = (tmp_path / "logs" / "graph_sub_controller.log").read_text()
+    assert "acting with the learner's sub weights of update 0" in sub_log
+
+
+def test_learner_killed_and_restarted_resumes_aligned(domain, tmp_path):
+    sup = start_graph(tmp_path, episodes=10, respawn=True)
+    status = tmp_path / "run" / "status.json"
+    try:
+        wait_for(lambda: status.exists() and json.loads(status.read_text())["episodes"] >= 3, 120,
+                 "3 episodes before the kill", sup)
+        sup.kill("learner")
+        wait_for(lambda: sup.restarts["learner"] >= 1, 20, "the learner respawn", sup)
+        wait_for(lambda: (tmp_path / "run" / "summary.json").exists(), 150, "the learner to finish", sup)
+    finally:
+        sup.stop()
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["episodes"] == 10
+    env_rows, transitions = read_jsonl(tmp_path / "env_steps.jsonl"), read_jsonl(tmp_path / "transitions.jsonl")
+    check_env_log_replays_in_process(env_rows)
+    check_transitions_match_env(transitions, env_rows)
+    assert "resumed from" in (tmp_path / "logs" / "learner.log").read_text()
+
+
+def test_late_joiner_sees_ros_discovery_info(domain, tmp_path):
+    from cyclonedds.sub import DataReader
+    from cyclonedds.topic import Topic
+
+    from hdrqn_ros.middleware.messages import message_class
+
+    specs = [ProcessSpec(name, [sys.executable, "-m", f"hdrqn_ros.nodes.{module}", "--ros-args", "-r", "__ns:=/g7"])
+             for name, module in (("env", "environment"), ("critic", "critic"))]
+    sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=5)
+    sup.start()
+    try:
+        time.sleep(4.0)  # the nodes are up before we join
+        mw = CycloneMiddleware([])
+        try:
+            info = message_class("rmw_dds_common/msg/ParticipantEntitiesInfo")
+            # keyless topic: a keep-last-1 reader would keep only one participant's sample
+            reader = DataReader(mw.participant, Topic(mw.participant, "ros_discovery_info", info),
+                                qos=_dds_qos(QoS(depth=64, transient_local=True)))
+            seen: dict[str, int] = {}
+
+            def nodes():
+                for sample in reader.take(N=64):
+                    for n in sample.node_entities_info_seq:
+                        seen[f"{n.node_namespace}/{n.node_name}"] = len(n.writer_gid_seq)
+                return {"/g7/environment", "/g7/critic"} <= set(seen)
+
+            wait_for(nodes, 20, "ros_discovery_info listing /g7/environment and /g7/critic", sup)
+            assert seen["/g7/environment"] >= 5  # observation, subgoal_images, env_step, pose, clock
+        finally:
+            mw.shutdown()
+    finally:
+        sup.stop()
+
+
+def test_malformed_messages_are_rejected_and_logged(domain, tmp_path):
+    specs = [ProcessSpec("env", [sys.executable, "-m", "hdrqn_ros.nodes.environment"]),
+             ProcessSpec("sub", [sys.executable, "-c", "import sys; from hdrqn_ros.nodes.controllers import "
+                                 "main_sub as m; sys.exit(m())", "--ros-args", "-p", "algo:=dqn",
+                                 "-r", "observation:=/probe_obs", "-r", "env_step:=/probe_step"])]
+    sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=5)
+    sup.start()
+    mw = CycloneMiddleware([])
+    try:
+        node = mw.create_node("prober")
+        steps, actions = [], []
+        node.create_subscription(P.FLOATS, "/env_step", lambda m: steps.append(P.read_record(m, P.STEP_FIELDS)))
+        node.create_subscription(P.INTS, "/action", lambda m: actions.append(P.read_record(m, ("key",), np.int64,
+                                                                                             extra=True)))
+        action_pub = node.create_publisher(P.INTS, "/action")
+        credit_pub = node.create_publisher(P.FLOATS, "/learner_credit", LATCHED_QOS)
+        obs_pub = node.create_publisher(P.IMAGE, "/probe_obs")
+        step_pub = node.create_publisher(P.FLOATS, "/probe_step")
+        mw.spin(until=lambda: bool(steps), timeout_s=30)
+        key = int(steps[0]["key"])
+
+        def sub_answers(k: int) -> bool:
+            step = dict(steps[0], key=k)
+            obs_pub.publish(P.make_image(node, k, np.zeros((44, 44, 3), np.uint8), "map"))
+            step_pub.publish(P.make_record(node, P.FLOATS, P.STEP_FIELDS, [step[f] for f in P.STEP_FIELDS]))
+            mw.spin(until=lambda: any(a["key"] == k for a in actions), timeout_s=3)
+            return any(a["key"] == k for a in actions)
+
+        assert any(sub_answers(key + i) for i in range(1, 11)), "the sub-controller never answered"
+        action_pub.publish(P.make_record(node, P.INTS, P.ACTION_FIELDS, [key, 99]))  # action out of range
+        action_pub.publish(P.make_record(node, P.INTS, ("key",), [key]))  # too few values
+        credit_pub.publish(P.make_record(node, P.FLOATS, P.CREDIT_FIELDS, [np.nan, 0, 0, 0, 0]))  # NaN
+        obs_pub.publish(P.make_image(node, key + 20, np.zeros((30, 44, 3), np.uint8), "map"))  # wrong size
+        bad = node.msg(P.IMAGE)(header=P.make_header(node, key + 20, "map"), height=44, width=44, encoding="bgr8",
+                                step=132, data=np.zeros(44 * 44 * 3, np.uint8))
+        obs_pub.publish(bad)  # wrong encoding
+        nan_step = dict(steps[0], key=key + 20, extrinsic=np.nan)
+        step_pub.publish(P.make_record(node, P.FLOATS, P.STEP_FIELDS, [nan_step[f] for f in P.STEP_FIELDS]))
+        mw.spin(timeout_s=1.0)
+        action_pub.publish(P.make_record(node, P.INTS, P.ACTION_FIELDS, [key, 1]))  # a good one: the env goes on
+        mw.spin(until=lambda: len({s["key"] for s in steps}) >= 2, timeout_s=10)
+        assert len({s["key"] for s in steps}) >= 2, "the environment stopped stepping"
+        assert sub_answers(key + 30), "the sub-controller stopped answering after the bad messages"
+    finally:
+        mw.shutdown()
+        codes = sup.stop()
+    assert all(rc == 0 for rc in codes.values()), codes
+    env_log = (tmp_path / "logs" / "env.log").read_text()
+    sub_log = (tmp_path / "logs" / "sub.log").read_text()
+    assert "action 99 is out of range" in env_log and "expected 2 values" in env_log and "NaN" in env_log
+    assert "image must be 44x44" in sub_log and "encoding must be rgb8" in sub_log and "non-finite" in sub_log
+    assert "Traceback" not in env_log + sub_log

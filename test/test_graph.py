@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 import time
 from itertools import count
@@ -51,6 +50,9 @@ def read_jsonl(path: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
+CONFIG = Path(__file__).resolve().parents[1] / "config"
+
+
 def start_graph(tmp_path: Path, algo: str = "hdrqn-v2", episodes: int = 8, respawn: bool = False) -> Supervisor:
     cfg = build_config([], algo=algo, env=ENV, episodes=episodes, seed=3, learning_starts=60, checkpoint_every=2,
                        eval_episodes=4, update_every=5, sub={"batch_size": 2}, meta={"batch_size": 2})
@@ -60,7 +62,9 @@ def start_graph(tmp_path: Path, algo: str = "hdrqn-v2", episodes: int = 8, respa
     config.write_text(json.dumps(cfg.model_dump()))
     params = write_params(cfg, run_dir, 1, config, extra={
         "environment": {"step_log": str(tmp_path / "env_steps.jsonl")},
-        "learner": {"transition_log": str(tmp_path / "transitions.jsonl"), "weights_every": 5}})
+        "learner": {"transition_log": str(tmp_path / "transitions.jsonl"), "weights_every": 5},
+        "meta_controller": {"subgoal_table": str(CONFIG / "nav2" / "subgoals.yaml")},
+        "sub_controller": {"action_table": str(CONFIG / "nav2" / "actions.yaml")}})
     sup = Supervisor(graph_processes(cfg, params, 1, respawn=respawn), log_dir=tmp_path / "logs", stop_timeout_s=5)
     sup.start()
     return sup
@@ -127,11 +131,28 @@ def test_payload_bytes_equal_rosbags_cdr(domain):
 
 
 def test_graph_trains_and_transitions_align(domain, tmp_path):
+    """Also: the Nav2 adapters publish a goal_pose per option and a cmd_vel per action."""
     sup = start_graph(tmp_path, episodes=8)
+    mw = CycloneMiddleware([])
+    goals, twists, subgoals = [], [], []
     try:
-        wait_for(lambda: (tmp_path / "run" / "summary.json").exists(), 150, "the learner to finish", sup)
+        node = mw.create_node("nav_probe")
+        node.create_subscription(P.POSE_STAMPED, "/goal_pose", goals.append)
+        node.create_subscription("geometry_msgs/msg/Twist", "/cmd_vel", twists.append)
+        node.create_subscription(P.INTS, "/subgoal", lambda m: subgoals.append(P.read_record(m, P.SUBGOAL_FIELDS,
+                                                                                               np.int64)))
+
+        def finished():
+            mw.spin(timeout_s=0.05)
+            return (tmp_path / "run" / "summary.json").exists()
+
+        wait_for(finished, 150, "the learner to finish", sup)
     finally:
+        mw.shutdown()
         sup.stop()
+    assert twists and goals and len(twists) > len(goals)
+    assert {round(g.pose.position.x, 3) for g in goals} <= {1.0, 3.5}  # poses from config/nav2/subgoals.yaml
+    assert any(s["new_option"] for s in subgoals)
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["episodes"] == 8 and summary["updates"] > 0
     env_rows, transitions = read_jsonl(tmp_path / "env_steps.jsonl"), read_jsonl(tmp_path / "transitions.jsonl")
@@ -159,6 +180,39 @@ def test_learner_killed_and_restarted_resumes_aligned(domain, tmp_path):
     check_env_log_replays_in_process(env_rows)
     check_transitions_match_env(transitions, env_rows)
     assert "resumed from" in (tmp_path / "logs" / "learner.log").read_text()
+
+
+def test_sub_controller_drives_cmd_vel_from_a_costmap(domain, tmp_path):
+    """Nav2 path: OccupancyGrid in, Twist out, no environment node; zero Twist on shutdown."""
+    spec = ProcessSpec("sub", [sys.executable, "-c", "import sys; from hdrqn_ros.nodes.controllers import main_sub "
+                               "as m; sys.exit(m())", "--ros-args", "-p", "algo:=drqn", "-p", "epsilon:=0.0",
+                               "-p", "observation_source:=costmap", "-p",
+                               f"action_table:={CONFIG / 'nav2' / 'actions.yaml'}"])
+    sup = Supervisor([spec], log_dir=tmp_path / "logs", stop_timeout_s=5)
+    sup.start()
+    mw = CycloneMiddleware([])
+    twists = []
+    try:
+        node = mw.create_node("robot")
+        node.create_subscription("geometry_msgs/msg/Twist", "/cmd_vel", twists.append)
+        pub = node.create_publisher("nav_msgs/msg/OccupancyGrid", "/local_costmap/costmap", LATCHED_QOS)
+        grid = node.msg("nav_msgs/msg/OccupancyGrid")(
+            header=P.make_header(node, 5_000_000_000, "odom"),
+            info=node.msg("nav_msgs/msg/MapMetaData")(resolution=0.05, width=60, height=60),
+            data=np.zeros(3600, np.int8))
+        for _ in range(100):
+            pub.publish(grid)
+            mw.spin(until=lambda: len(twists) >= 2, timeout_s=0.5)
+            if len(twists) >= 2:
+                break
+        assert len(twists) >= 2, "no cmd_vel from the costmap"
+        sup.stop()
+        mw.spin(timeout_s=1.0)
+        last = twists[-1]
+        assert (last.linear.x, last.angular.z) == (0.0, 0.0), "no stop command on shutdown"
+    finally:
+        mw.shutdown()
+        sup.stop()
 
 
 def test_late_joiner_sees_ros_discovery_info(domain, tmp_path):

@@ -16,6 +16,7 @@ from hdrqn_ros.config import ConfigError
 from hdrqn_ros.envs.registration import GRID_IDS, MONTEZUMA_IDS, make_batch
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware, Node, ParameterError, RosArgsError, open_middleware
 from hdrqn_ros.nodes import protocol as P
+from hdrqn_ros.nodes.nav import NavConfigError
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint
 
 ENV_DEFAULTS = {"algo": "hdrqn-v2", "env": "hdrqn/GridWorld-2Goals-v0", "view": "5", "seed": 0}
@@ -130,7 +131,8 @@ def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None) 
         return getattr(obj, "exit_code", 0)
     except KeyboardInterrupt:
         return 130
-    except (NodeConfigError, ConfigError, ParameterError, RosArgsError, CheckpointError, FileNotFoundError) as exc:
+    except (NodeConfigError, NavConfigError, ConfigError, ParameterError, RosArgsError, CheckpointError,
+            FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     finally:

@@ -17,6 +17,7 @@ from hdrqn_ros.agents.algorithms import ALGO_SPECS, stack_subgoal
 from hdrqn_ros.agents.networks import lstm_state_size
 from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
+from hdrqn_ros.nodes import nav
 from hdrqn_ros.nodes import protocol as P
 from hdrqn_ros.nodes.common import ENV_DEFAULTS, ActingNetwork, NodeConfigError, run_node
 from hdrqn_ros.nodes.follower import StepFollower, done
@@ -24,22 +25,26 @@ from hdrqn_ros.nodes.follower import StepFollower, done
 CONTROLLER_PARAMETERS = {**ENV_DEFAULTS, "epsilon": -1.0, "checkpoint": "", "meta_state": "c"}
 """``epsilon`` < 0: explore with the learner's schedule (1.0 until it is heard from);
 ``checkpoint``: initial weights (``RUN_DIR/checkpoints/last.pt``); ``meta_state``: which
-LSTM state hDRQNv2's meta-controller reads, ``c`` or ``h``."""
+LSTM state hDRQNv2's meta-controller reads, ``c`` or ``h``. The Nav2 adapters add
+:data:`~hdrqn_ros.nodes.nav.META_PARAMETERS` / :data:`~hdrqn_ros.nodes.nav.SUB_PARAMETERS`."""
 
 
 class _Controller(StepFollower):
     role = ""
 
+    nav_parameters: dict = {}
+
     def __init__(self, mw: Middleware, name: str):
         node = mw.create_node(name)
         super().__init__(node)
-        p = self.params = node.declare_parameters(CONTROLLER_PARAMETERS)
+        p = self.params = node.declare_parameters({**CONTROLLER_PARAMETERS, **self.nav_parameters})
         if p["meta_state"] not in ("c", "h"):
             raise NodeConfigError(f"meta_state must be 'c' or 'h', got {p['meta_state']!r}")
         self.net = ActingNetwork(node, self.role, p, default_epsilon=1.0)
         self.spec = ALGO_SPECS[p["algo"]]
         self.state = self.net.initial_state()
-        node.create_subscription(P.FLOATS, P.ENV_STEP, self.on_env_step)
+        if p.get("observation_source", "topic") == "topic":  # lock-step with the environment node
+            node.create_subscription(P.FLOATS, P.ENV_STEP, self.on_env_step)
         node.create_subscription(P.FLOATS, P.CREDIT, self._on_credit, LATCHED_QOS)
 
     def _on_credit(self, msg) -> None:
@@ -58,26 +63,72 @@ class _Controller(StepFollower):
 
 
 class SubControllerNode(_Controller):
+    """Lock-step with the environment node (``observation_source: topic``), or free-running
+    on a Nav2 local costmap (``costmap``): one action per costmap update, toward the latest
+    ``subgoal`` (its image is the costmap window centred on the subgoal table's pose)."""
+
     role = "sub"
+    nav_parameters = {**nav.SUB_PARAMETERS, "subgoal_table": ""}
 
     def __init__(self, mw: Middleware):
         super().__init__(mw, "sub_controller")
-        node = self.node
+        node, p = self.node, self.params
         self.subgoal_image = np.zeros((OBS_SIZE, OBS_SIZE, 3), np.uint8)
         self.pub_action = node.create_publisher(P.INTS, P.ACTION)
         self.pub_state = node.create_publisher(P.FLOATS, P.SUB_STATE) if self.spec.meta_input == "state" else None
-        self.state_index = 1 if self.params["meta_state"] == "c" else 0
-        node.create_subscription(P.IMAGE, P.OBSERVATION, lambda m: self._on_image(P.OBSERVATION, m))
+        self.state_index = 1 if p["meta_state"] == "c" else 0
+        self.actions = nav.ActionTable.load(p["action_table"], self.net.num_actions) if p["action_table"] else None
+        self.pub_cmd = node.create_publisher(self.actions.type_name, p["cmd_vel_topic"]) if self.actions else None
+        self.goals = nav.SubgoalTable.load(p["subgoal_table"], self.net.num_subgoals) if p["subgoal_table"] else None
+        self.free_subgoal = self.option_subgoal = -1  # costmap mode: latest subgoal, current option's
+        self.costmaps = 0
+        source = p["observation_source"]
+        if source == "costmap":
+            if not p["view"].isdigit():
+                raise NodeConfigError(f"observation_source costmap needs a numeric view, got {p['view']!r}")
+            node.create_subscription(nav.OCCUPANCY_GRID, p["costmap_topic"], self._on_costmap, LATCHED_QOS)
+        elif source != "topic":
+            raise NodeConfigError(f"observation_source must be 'topic' or 'costmap', got {source!r}")
+        else:
+            node.create_subscription(P.IMAGE, P.OBSERVATION, lambda m: self._on_image(P.OBSERVATION, m))
         if self.spec.hierarchical:
             node.create_subscription(P.INTS, P.SUBGOAL, self._on_subgoal)
-            node.create_subscription(P.IMAGE, P.SUBGOAL_IMAGES,
-                                     lambda m: self._on_image(P.SUBGOAL_IMAGES, m, OBS_SIZE * self.net.num_subgoals))
+            if source == "topic":
+                node.create_subscription(P.IMAGE, P.SUBGOAL_IMAGES, lambda m: self._on_image(
+                    P.SUBGOAL_IMAGES, m, OBS_SIZE * self.net.num_subgoals))
 
     def _on_subgoal(self, msg) -> None:
         rec = self.decode(P.SUBGOAL, lambda: P.read_record(msg, P.SUBGOAL_FIELDS, np.int64))
         if rec is not None and self.decode(P.SUBGOAL, lambda: P.check_index(rec["subgoal"], self.net.num_subgoals,
                                                                              "subgoal")) is not None:
-            self.put(P.SUBGOAL, rec["key"], rec)
+            if self.params["observation_source"] == "costmap":
+                self.free_subgoal = int(rec["subgoal"])
+            else:
+                self.put(P.SUBGOAL, rec["key"], rec)
+
+    def _on_costmap(self, msg) -> None:
+        """Free-running: act on each costmap update (no environment node, no lock-step)."""
+        view = int(self.params["view"])
+        obs = self.decode(self.params["costmap_topic"], lambda: nav.costmap_to_observation(msg, view_cells=view))
+        if obs is None:
+            return
+        self.costmaps += 1
+        key = P.key_of(msg.header.stamp) or self.costmaps
+        x = obs
+        if self.spec.hierarchical:
+            if self.free_subgoal < 0:
+                return  # no subgoal yet
+            if self.free_subgoal != self.option_subgoal:
+                self.state = self.net.initial_state()  # a new option
+                self.option_subgoal = self.free_subgoal
+            if self.goals is not None:
+                self.subgoal_image = nav.costmap_to_observation(
+                    msg, robot_xy=self.goals.poses[self.free_subgoal][:2], view_cells=view)
+            x = stack_subgoal(obs, self.subgoal_image)
+        action, self.state = self.net.choose(x, self.state)
+        self.pub_action.publish(P.make_record(self.node, P.INTS, P.ACTION_FIELDS, [key, action]))
+        if self.pub_cmd is not None:
+            self.pub_cmd.publish(self.actions.twist_msg(self.node, action, key))
 
     def ready(self, step: dict) -> bool:
         key = int(step["key"])
@@ -110,17 +161,30 @@ class SubControllerNode(_Controller):
         if self.pub_state is not None:
             replies.append((self.pub_state, P.make_state(self.node, key, self.state[self.state_index][0].numpy())))
         replies.append((self.pub_action, P.make_record(self.node, P.INTS, P.ACTION_FIELDS, [key, action])))
+        if self.pub_cmd is not None:
+            replies.append((self.pub_cmd, self.actions.twist_msg(self.node, action, key)))
         return replies
+
+    def close(self) -> None:
+        """Stop the robot: a zero velocity command."""
+        if self.pub_cmd is not None:
+            self.pub_cmd.publish(self.actions.stop_msg(self.node))
 
 
 class MetaControllerNode(_Controller):
+    """With a ``subgoal_table`` it also publishes each new option's subgoal as a
+    ``geometry_msgs/PoseStamped`` on ``goal_pose_topic`` (Nav2's ``goal_pose``)."""
+
     role = "meta"
+    nav_parameters = nav.META_PARAMETERS
 
     def __init__(self, mw: Middleware):
         super().__init__(mw, "meta_controller")
         if not self.spec.hierarchical:
             raise NodeConfigError(f"{self.params['algo']} is a flat agent: it has no meta-controller")
-        node = self.node
+        node, p = self.node, self.params
+        self.goals = nav.SubgoalTable.load(p["subgoal_table"], self.net.num_subgoals) if p["subgoal_table"] else None
+        self.pub_goal = node.create_publisher(nav.POSE_STAMPED, p["goal_pose_topic"]) if self.goals else None
         self.subgoal = -1
         self.last_sub_state = np.zeros(lstm_state_size, np.float32)
         self.pub_subgoal = node.create_publisher(P.INTS, P.SUBGOAL)
@@ -165,7 +229,11 @@ class MetaControllerNode(_Controller):
             x = self.last_sub_state if self.spec.meta_input == "state" else self.inbox.get(P.OBSERVATION, key)
             place = int(step["at_subgoal"]) if step["t"] > 0 else -1  # may not choose the subgoal it stands on
             self.subgoal, self.state = self.net.choose(x, self.state, invalid=place)
-        return [(self.pub_subgoal, P.make_record(self.node, P.INTS, P.SUBGOAL_FIELDS, [key, self.subgoal, new_option]))]
+        replies = [(self.pub_subgoal, P.make_record(self.node, P.INTS, P.SUBGOAL_FIELDS, [key, self.subgoal, new_option]))]
+        if new_option and self.pub_goal is not None:
+            stamp = P.Stamp.of(key)
+            replies.append((self.pub_goal, self.goals.pose_msg(self.node, self.subgoal, stamp.sec, stamp.nanosec)))
+        return replies
 
 
 def main_sub(argv: list[str] | None = None) -> int:

@@ -20,6 +20,7 @@ setup(
         (f"share/{PACKAGE}/launch", glob("launch/*.py")),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/config/nav2", glob("config/nav2/*.yaml")),
+        (f"share/{PACKAGE}/config/ros", glob("config/ros/*.yaml")),
     ],
     install_requires=[
         "numpy>=1.24",

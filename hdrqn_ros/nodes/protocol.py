@@ -85,14 +85,24 @@ def key_of(stamp) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
+_layouts: dict = {}
+
+
+def _layout(node, fields: tuple[str, ...]) -> object:
+    """The (shared, never modified) layout naming ``fields``: built once per class and fields."""
+    layout_cls = node.msg("std_msgs/msg/MultiArrayLayout")
+    layout = _layouts.get((layout_cls, fields))
+    if layout is None:
+        dim = node.msg("std_msgs/msg/MultiArrayDimension")(label=",".join(fields), size=len(fields),
+                                                           stride=len(fields))
+        layout = _layouts[(layout_cls, fields)] = layout_cls(dim=[dim], data_offset=0)
+    return layout
+
+
 def make_record(node, type_name: str, fields: tuple[str, ...], values) -> object:
     """A ``*MultiArray`` message holding ``values`` in the order of ``fields``."""
-    cls = node.msg(type_name)
-    dim = node.msg("std_msgs/msg/MultiArrayDimension")(label=",".join(fields), size=len(fields),
-                                                       stride=len(fields))
-    layout = node.msg("std_msgs/msg/MultiArrayLayout")(dim=[dim], data_offset=0)
     dtype = np.float64 if type_name == FLOATS else np.int64
-    return cls(layout=layout, data=node.pack(np.asarray(values, dtype=dtype)))
+    return node.msg(type_name)(layout=_layout(node, fields), data=node.pack(np.asarray(values, dtype=dtype)))
 
 
 def read_record(msg, fields: tuple[str, ...], dtype=np.float64, extra: bool = False) -> dict[str, float]:

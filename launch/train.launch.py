@@ -1,0 +1,183 @@
+"""Train an agent as a ROS 2 node graph: ``ros2 launch hdrqn_ros train.launch.py``.
+
+The same graph ``hdrqn up`` starts without ROS (``hdrqn_ros/graph.py``): per environment
+group (namespace ``/`` for one group, ``/group0``, ``/group1``... for several) an
+``environment`` (``wait_for_learner: true``), for hierarchical agents (hdrqn-v2, hdrqn-v1,
+hdqn) a ``critic`` and a ``meta_controller``, and a ``sub_controller``; plus one
+``learner`` in ``/`` (``groups`` = the list of namespaces, ``resume: true``). Group ``i``'s
+nodes get ``seed + 1000 * i``.
+
+Parameters: the params file (default: this package's ``config/ros/train.yaml``) first,
+then the launch arguments given on the command line, which win. A launch argument left
+empty keeps the params file's value (or the node's default). Examples::
+
+    ros2 launch hdrqn_ros train.launch.py
+    ros2 launch hdrqn_ros train.launch.py algo:=hdrqn-v1 groups:=4 episodes:=5000 run_dir:=runs/v1
+    ros2 launch hdrqn_ros train.launch.py params_file:=/path/to/my_train.yaml respawn:=false
+
+When the learner exits, the whole launch is shut down: always with ``respawn:=false``;
+with ``respawn:=true`` (default) when it exits with 0 (training finished, or it was
+stopped) or 2 (bad parameters, which a restart cannot fix). Any other exit (a crash, an
+exception in training) restarts it after ``respawn_delay`` and it resumes from
+``run_dir``'s last checkpoint, like the other nodes, which are restarted after any exit.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import yaml
+from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument, EmitEvent, LogInfo, OpaqueFunction, RegisterEventHandler
+from launch.event_handlers import OnProcessExit
+from launch.events import Shutdown
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+
+PACKAGE = "hdrqn_ros"
+HIERARCHICAL_ALGOS = ("hdrqn-v2", "hdrqn-v1", "hdqn")
+"""Agents with a meta-controller and an internal critic (``ALGO_SPECS[algo].hierarchical``)."""
+ALGOS = HIERARCHICAL_ALGOS + ("drqn", "dqn")
+DEFAULT_ALGO = "hdrqn-v2"
+"""The nodes' own default ``algo`` (``hdrqn_ros.nodes.common.ENV_DEFAULTS``)."""
+RESPAWN_DELAY_S = 2.0
+LEARNER_FINAL_EXIT_CODES = (0, 2)
+"""Learner exit codes that end the launch even with respawn: finished or stopped (0),
+bad parameters / config / checkpoint (2)."""
+SHARED_ARGS = ("algo", "env", "view")
+"""String launch arguments that, when not empty, override the ``/**`` parameter of that name."""
+
+
+def share_dir() -> Path:
+    """The package's share directory; the source tree when the package is not installed."""
+    try:
+        return Path(get_package_share_directory(PACKAGE))
+    except PackageNotFoundError:
+        return Path(__file__).resolve().parents[1]
+
+
+def group_namespaces(groups: int) -> list[str]:
+    """``["/"]`` for one group, else ``["/group0", ..., "/group<n-1>"]`` (as ``hdrqn up``)."""
+    return ["/"] if groups == 1 else [f"/group{i}" for i in range(groups)]
+
+
+def shared_file_parameters(params_file: str) -> dict:
+    """The ``/**`` parameters of a ROS 2 params file (``{}`` if it has none)."""
+    try:
+        doc = yaml.safe_load(Path(params_file).read_text(encoding="utf-8")) or {}
+    except OSError as exc:
+        raise RuntimeError(f"params_file: cannot read {params_file}: {exc.strerror or exc}") from None
+    section = doc.get("/**", {}) if isinstance(doc, dict) else {}
+    params = section.get("ros__parameters", {}) if isinstance(section, dict) else {}
+    return params if isinstance(params, dict) else {}
+
+
+def _arg(context, name: str) -> str:
+    return LaunchConfiguration(name).perform(context).strip()
+
+
+def _int_arg(context, name: str, minimum: int) -> int | None:
+    text = _arg(context, name)
+    if not text:
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        raise RuntimeError(f"launch argument {name} must be an integer, got {text!r}") from None
+    if value < minimum:
+        raise RuntimeError(f"launch argument {name} must be >= {minimum}, got {value}")
+    return value
+
+
+def _bool_arg(context, name: str) -> bool:
+    text = _arg(context, name).lower()
+    if text in ("true", "1", "yes", "on"):
+        return True
+    if text in ("false", "0", "no", "off"):
+        return False
+    raise RuntimeError(f"launch argument {name} must be true or false, got {text!r}")
+
+
+def _graph(context):
+    params_file = _arg(context, "params_file")
+    file_shared = shared_file_parameters(params_file)
+    groups = _int_arg(context, "groups", 1) or 1
+    respawn = _bool_arg(context, "respawn")
+
+    shared = {name: _arg(context, name) for name in SHARED_ARGS if _arg(context, name)}
+    algo = shared.get("algo") or str(file_shared.get("algo", DEFAULT_ALGO))
+    if algo not in ALGOS:
+        raise RuntimeError(f"unknown algo {algo!r}; choose one of {', '.join(ALGOS)}")
+    seed = _int_arg(context, "seed", 0)
+    if seed is None:
+        seed = int(file_shared.get("seed", 0))
+    hierarchical = algo in HIERARCHICAL_ALGOS
+    namespaces = group_namespaces(groups)
+
+    actions = [LogInfo(msg=f"hdrqn_ros training graph: {algo}, {groups} group(s) {namespaces}, "
+                           f"params {params_file}, respawn {respawn}")]
+    for i, ns in enumerate(namespaces):
+        group = {**shared, "seed": seed + 1000 * i}
+        actions.append(Node(package=PACKAGE, executable="environment", name="environment", namespace=ns,
+                            parameters=[params_file, {**group, "wait_for_learner": True}],
+                            respawn=respawn, respawn_delay=RESPAWN_DELAY_S, output="screen"))
+        if hierarchical:
+            actions.append(Node(package=PACKAGE, executable="critic", name="critic", namespace=ns,
+                                parameters=[params_file, group],
+                                respawn=respawn, respawn_delay=RESPAWN_DELAY_S, output="screen"))
+            actions.append(Node(package=PACKAGE, executable="meta_controller", name="meta_controller",
+                                namespace=ns, parameters=[params_file, group],
+                                respawn=respawn, respawn_delay=RESPAWN_DELAY_S, output="screen"))
+        actions.append(Node(package=PACKAGE, executable="sub_controller", name="sub_controller", namespace=ns,
+                            parameters=[params_file, group],
+                            respawn=respawn, respawn_delay=RESPAWN_DELAY_S, output="screen"))
+
+    learner_params = {**shared, "seed": seed, "groups": namespaces, "resume": True}
+    episodes = _int_arg(context, "episodes", 1)
+    if episodes is not None:
+        learner_params["episodes"] = episodes
+    for name in ("run_dir", "config"):
+        if _arg(context, name):
+            learner_params[name] = _arg(context, name)
+    learner = Node(package=PACKAGE, executable="learner", name="learner", namespace="/",
+                   parameters=[params_file, learner_params],
+                   respawn=respawn, respawn_delay=RESPAWN_DELAY_S, output="screen")
+    actions.append(learner)
+
+    def on_learner_exit(event, _context):
+        if respawn and event.returncode not in LEARNER_FINAL_EXIT_CODES:
+            return [LogInfo(msg=f"learner exited with {event.returncode}: restarting it (resume from run_dir)")]
+        return [LogInfo(msg=f"learner exited with {event.returncode}: shutting the training graph down"),
+                EmitEvent(event=Shutdown(reason=f"learner exited with {event.returncode}"))]
+
+    actions.append(RegisterEventHandler(OnProcessExit(target_action=learner, on_exit=on_learner_exit)))
+    return actions
+
+
+def generate_launch_description() -> LaunchDescription:
+    default_params = str(share_dir() / "config" / "ros" / "train.yaml")
+    return LaunchDescription([
+        DeclareLaunchArgument("params_file", default_value=default_params,
+                              description="ROS 2 parameters file for all nodes (/** shared, then per node)"),
+        DeclareLaunchArgument("groups", default_value="1",
+                              description="environment groups (environment + controllers each) feeding the learner"),
+        DeclareLaunchArgument("algo", default_value="",
+                              description=f"agent: {', '.join(ALGOS)} (empty: params file, else {DEFAULT_ALGO})"),
+        DeclareLaunchArgument("env", default_value="",
+                              description="environment id, e.g. hdrqn/GridWorld-2Goals-v0 (empty: params file)"),
+        DeclareLaunchArgument("view", default_value="",
+                              description="gridworld view: odd number of cells or 'full' (empty: params file)"),
+        DeclareLaunchArgument("seed", default_value="",
+                              description="base seed; group i uses seed + 1000 i (empty: params file, else 0)"),
+        DeclareLaunchArgument("episodes", default_value="",
+                              description="training episodes of the learner (empty: params file)"),
+        DeclareLaunchArgument("run_dir", default_value="",
+                              description="learner output directory, relative to the launch's working directory "
+                                          "(empty: params file)"),
+        DeclareLaunchArgument("config", default_value="",
+                              description="training config YAML for the learner, as hdrqn train --config "
+                                          "(empty: params file)"),
+        DeclareLaunchArgument("respawn", default_value="true",
+                              description="restart nodes that exit (the learner resumes from run_dir)"),
+        OpaqueFunction(function=_graph),
+    ])

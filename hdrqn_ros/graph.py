@@ -37,14 +37,15 @@ def write_params(cfg: TrainConfig, run_dir: Path, groups: int, config_file: Path
         shared["dds_interface"] = interface
     doc = {
         "/**": {"ros__parameters": shared},
-        "environment": {"ros__parameters": {"wait_for_learner": True}},
-        "meta_controller": {"ros__parameters": {"meta_state": cfg.meta_state}},
-        "sub_controller": {"ros__parameters": {"meta_state": cfg.meta_state}},
-        "learner": {"ros__parameters": {"config": str(config_file), "episodes": cfg.episodes,
+        "/**/environment": {"ros__parameters": {"wait_for_learner": True}},
+        "/**/meta_controller": {"ros__parameters": {"meta_state": cfg.meta_state}},
+        "/**/sub_controller": {"ros__parameters": {"meta_state": cfg.meta_state}},
+        "/learner": {"ros__parameters": {"config": str(config_file), "episodes": cfg.episodes,
                                         "run_dir": str(run_dir), "groups": group_namespaces(groups)}},
     }
-    for node, values in (extra or {}).items():
-        doc.setdefault(node, {"ros__parameters": {}})["ros__parameters"].update(values)
+    for node, values in (extra or {}).items():  # extra: {"environment": {...}} -> key "/**/environment"
+        key = "/learner" if node == "learner" else f"/**/{node}"
+        doc.setdefault(key, {"ros__parameters": {}})["ros__parameters"].update(values)
     path = run_dir / "params.yaml"
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
@@ -67,6 +68,8 @@ def graph_processes(cfg: TrainConfig, params: Path, groups: int, respawn: bool =
         for node in nodes:
             argv = _command(node) + ["--ros-args", "--params-file", str(params), "-r", f"__ns:={ns}",
                                      "-p", f"seed:={cfg.seed + 1000 * i}"]
+            if node == "environment" and i > 0:
+                argv += ["-p", "publish_clock:=false"]  # one sim clock: group 0's
             specs.append(ProcessSpec(name=f"{ns.strip('/') or 'graph'}/{node}", argv=argv, respawn=respawn))
     learner_argv = _command("learner") + ["--ros-args", "--params-file", str(params), "-p", "resume:=true"]
     specs.append(ProcessSpec(name="learner", argv=learner_argv, respawn=respawn, required=not respawn))

@@ -10,8 +10,9 @@ double, ``-p names:=[a,b]`` a string array).
 """
 from __future__ import annotations
 
-import fnmatch
+import re
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +41,7 @@ class RosArgs:
         fqn = f"{namespace.rstrip('/')}/{node_name}"
         out: dict[str, Any] = {}
         for pattern, name, value in self.params:
-            if _node_matches(pattern, node_name, fqn):
+            if pattern == "" or _node_matches(pattern, node_name, fqn):
                 out[name] = value
         return out
 
@@ -55,11 +56,21 @@ class RosArgs:
 
 
 def _node_matches(pattern: str, node_name: str, fqn: str) -> bool:
-    if pattern in ("", "/**", "**"):
-        return True
-    if pattern.startswith("/"):
-        return fnmatch.fnmatchcase(fqn, pattern.replace("/**/", "/*/"))
-    return fnmatch.fnmatchcase(node_name, pattern)
+    """rcl's rule: a key names a fully qualified node (a missing leading ``/`` is implied);
+    ``*`` matches one name token, ``**`` any number of namespace tokens (also none)."""
+    return _pattern_regex(pattern).fullmatch(fqn) is not None
+
+
+@lru_cache(maxsize=256)
+def _pattern_regex(pattern: str) -> re.Pattern:
+    tokens = ("/" + pattern.lstrip("/")).split("/")[1:]
+    out = ""
+    for tok in tokens:
+        if tok == "**":
+            out += "(?:/[^/]+)*"
+        else:
+            out += "/" + "[^/]+".join(re.escape(part) for part in tok.split("*"))
+    return re.compile(out or "/")
 
 
 def split_ros_args(argv: list[str]) -> tuple[list[str], RosArgs]:

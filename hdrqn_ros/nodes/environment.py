@@ -15,16 +15,17 @@ import time
 import numpy as np
 
 from hdrqn_ros.envs.domain import NO_SUBGOAL
-from hdrqn_ros.envs.registration import make_batch
+from hdrqn_ros.envs.registration import MONTEZUMA_IDS, make_batch
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
 from hdrqn_ros.nodes import protocol as P
 from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, env_kwargs, obs_digest, run_node
 
 PARAMETERS = {**ENV_DEFAULTS, "step_period": 0.01, "frame_id": "hdrqn_map", "action_timeout": 5.0,
-              "wait_for_learner": False, "max_episodes": 0, "step_log": ""}
+              "wait_for_learner": False, "max_episodes": 0, "step_log": "", "publish_clock": True}
 """``step_period``: simulated seconds per step (the key increment); ``max_episodes``: stop
 after this many episodes (0: run until stopped); ``step_log``: append every step to this
-JSON-lines file (the ground truth that learner transition logs are checked against)."""
+JSON-lines file (the ground truth that learner transition logs are checked against);
+``publish_clock``: publish ``/clock`` (turn off for all but one group: there is one sim clock)."""
 
 
 class EnvironmentNode:
@@ -39,7 +40,7 @@ class EnvironmentNode:
         self.pub_images = node.create_publisher(P.IMAGE, P.SUBGOAL_IMAGES)
         self.pub_step = node.create_publisher(P.FLOATS, P.ENV_STEP)
         self.pub_pose = node.create_publisher(P.POSE_STAMPED, P.POSE)
-        self.pub_clock = node.create_publisher(P.CLOCK_TYPE, P.CLOCK)
+        self.pub_clock = node.create_publisher(P.CLOCK_TYPE, P.CLOCK) if p["publish_clock"] else None
         node.create_subscription(P.INTS, P.ACTION, self._on_action)
         node.create_subscription(P.FLOATS, P.CREDIT, self._on_credit, LATCHED_QOS)
         node.create_timer(min(0.5, p["action_timeout"]), self._watchdog)
@@ -74,9 +75,14 @@ class EnvironmentNode:
             self.pub_images.publish(P.make_image(node, key, np.concatenate(images), frame))
         self.pub_obs.publish(P.make_image(node, key, self.obs, frame))
         self.pub_step.publish(P.make_record(node, P.FLOATS, P.STEP_FIELDS, [self.step_record[f] for f in P.STEP_FIELDS]))
-        self.pub_clock.publish(node.msg(P.CLOCK_TYPE)(clock=P.make_time(node, key)))
-        row, col = (float(v) for v in self.batch.agent_pos[0])
-        self.pub_pose.publish(P.make_pose(node, key, frame, x=col, y=row))
+        if self.pub_clock is not None:
+            self.pub_clock.publish(node.msg(P.CLOCK_TYPE)(clock=P.make_time(node, key)))
+        self.pub_pose.publish(P.make_pose(node, key, frame, *self._pose_xy()))
+
+    def _pose_xy(self) -> tuple[float, float]:
+        """Agent position for ``pose``: grid (column, row) in cells; Montezuma RAM (x, y) in pixels."""
+        a, b = (float(v) for v in self.batch.agent_pos[0])
+        return (a, b) if self.params["env"] in MONTEZUMA_IDS else (b, a)
 
     # -- stepping ----------------------------------------------------------------------------
     def _on_action(self, msg) -> None:

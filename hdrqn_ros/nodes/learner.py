@@ -64,6 +64,7 @@ class GroupAssembler(StepFollower):
         self.skipped = 0  # steps seen while waiting for an episode boundary
         self.lost_episodes = 0  # episodes cut short by missing messages or restarts
         self.open = False
+        self.last_credit: tuple | None = None
         self.log = log
         t = self.topic
         node.create_subscription(P.FLOATS, t(P.ENV_STEP), self.on_env_step, P.LEARNER_QOS)
@@ -194,10 +195,15 @@ class GroupAssembler(StepFollower):
                "obs": obs_digest(self.prev_obs), "next_obs": obs_digest(obs)}
         self.log.write(json.dumps(row) + "\n")
 
-    def publish_credit(self, window: int, owed_ok: bool, eps: tuple[float, float], epoch: float) -> None:
+    def publish_credit(self, window: int, owed_ok: bool, eps: tuple[float, float], epoch: float,
+                       force: bool = False) -> None:
+        """Publish ``learner_credit`` when the credit or the epsilons changed (or ``force``)."""
         credit = self.env_steps_seen + window if owed_ok else self.env_steps_seen
-        values = [credit, eps[0], eps[1], self.last_key, epoch]
-        self.credit_pub.publish(P.make_record(self.node, P.FLOATS, P.CREDIT_FIELDS, values))
+        values = (credit, round(eps[0], 4), round(eps[1], 4))
+        if values == self.last_credit and not force:
+            return
+        self.last_credit = values
+        self.credit_pub.publish(P.make_record(self.node, P.FLOATS, P.CREDIT_FIELDS, [*values, self.last_key, epoch]))
 
     def stats(self) -> dict:
         return {"env_steps": self.env_steps_seen, "transitions": self.transitions, "skipped": self.skipped,
@@ -240,7 +246,7 @@ class LearnerNode:
         self._stop = threading.Event()
         self._publish_weights()
         node.create_timer(p["status_period"], self._status)
-        node.create_timer(0.05, self._grant_credit)
+        node.create_timer(1.0, lambda: self._grant_credit(force=True))  # also reaches late joiners
         self.thread = threading.Thread(target=self._train, name="learner-train", daemon=True)
         self.thread.start()
 
@@ -263,9 +269,8 @@ class LearnerNode:
                     learner.run_owed_updates(limit=1)
                     if learner.agent.sub.updates // self.params["weights_every"] > before // self.params["weights_every"]:
                         self._publish_weights()
-                    self._grant_credit()
-                else:
-                    self._grant_credit()
+                self._grant_credit()
+                if not learner.owed_updates:
                     time.sleep(0.001)
             if learner.episodes >= cfg.episodes:
                 self._finish()
@@ -287,12 +292,12 @@ class LearnerNode:
             learner.log_episode(stats, *eps, time.perf_counter() - self.start)
             self.recent.append(stats)
 
-    def _grant_credit(self) -> None:
+    def _grant_credit(self, force: bool = False) -> None:
         learner = self.learner
         owed_ok = learner.owed_updates <= self.params["max_owed_updates"] and not self.episodes.full()
         with self._credit_lock:
             for g in self.groups:
-                g.publish_credit(self.params["credit_window"], owed_ok, learner.epsilons(), self.epoch)
+                g.publish_credit(self.params["credit_window"], owed_ok, learner.epsilons(), self.epoch, force)
 
     def _publish_weights(self) -> None:
         updates = self.learner.agent.sub.updates

@@ -66,14 +66,14 @@ def _config(episodes: int, num_envs: int = 1):
                         eval_every=0, checkpoint_every=10**6)
 
 
-def graph_training_rate(seconds: float, tmp: Path) -> dict:
+def graph_training_rate(seconds: float, tmp: Path, groups: int = 1, learner: dict | None = None) -> dict:
     cfg = _config(100_000)
-    run = tmp / "graph"
+    run = tmp / f"graph{groups}"
     run.mkdir()
     cfg_file = run / "in.yaml"
     cfg_file.write_text(json.dumps(cfg.model_dump()))
-    params = write_params(cfg, run, 1, cfg_file)
-    sup = Supervisor(graph_processes(cfg, params, 1, respawn=False), log_dir=run / "logs")
+    params = write_params(cfg, run, groups, cfg_file, extra={"learner": learner or {}})
+    sup = Supervisor(graph_processes(cfg, params, groups, respawn=False), log_dir=run / "logs")
     sup.start()
     status = run / "status.json"
 

@@ -163,6 +163,20 @@ def test_graph_trains_and_transitions_align(domain, tmp_path):
     assert "acting with the learner's sub weights of update 0" in sub_log
 
 
+@pytest.mark.parametrize("algo", ["hdrqn-v1", "dqn"])
+def test_other_algorithms_train_aligned(domain, tmp_path, algo):
+    """Image-input meta-controller (hDRQNv1) and a flat agent (no critic, no meta)."""
+    sup = start_graph(tmp_path, algo=algo, episodes=5)
+    try:
+        wait_for(lambda: (tmp_path / "run" / "summary.json").exists(), 150, "the learner to finish", sup)
+    finally:
+        sup.stop()
+    env_rows, transitions = read_jsonl(tmp_path / "env_steps.jsonl"), read_jsonl(tmp_path / "transitions.jsonl")
+    check_env_log_replays_in_process(env_rows)
+    check_transitions_match_env(transitions, env_rows)
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["updates"] > 0
+
+
 def test_learner_killed_and_restarted_resumes_aligned(domain, tmp_path):
     sup = start_graph(tmp_path, episodes=10, respawn=True)
     status = tmp_path / "run" / "status.json"

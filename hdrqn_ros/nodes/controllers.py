@@ -91,9 +91,11 @@ class SubControllerNode(_Controller):
             raise NodeConfigError(f"observation_source must be 'topic' or 'costmap', got {source!r}")
         else:
             node.create_subscription(P.IMAGE, P.OBSERVATION, lambda m: self._on_image(P.OBSERVATION, m))
+        self.acted_key = 0  # the last step key this node chose an action for
         if self.spec.hierarchical:
             node.create_subscription(P.INTS, P.SUBGOAL, self._on_subgoal)
             if source == "topic":
+                node.create_subscription(P.FLOATS, P.CRITIC, self._on_critic)
                 node.create_subscription(P.IMAGE, P.SUBGOAL_IMAGES, lambda m: self._on_image(
                     P.SUBGOAL_IMAGES, m, OBS_SIZE * self.net.num_subgoals))
 
@@ -130,6 +132,18 @@ class SubControllerNode(_Controller):
         if self.pub_cmd is not None:
             self.pub_cmd.publish(self.actions.twist_msg(self.node, action, key))
 
+    def _on_critic(self, msg) -> None:
+        rec = self.decode(P.CRITIC, lambda: P.read_record(msg, P.CRITIC_FIELDS))
+        if rec is not None:
+            self.put(P.CRITIC, rec["key"], rec)
+
+    def received(self, step: dict) -> None:
+        """hDRQNv2: where an option may end, hand the meta-controller our LSTM state after the
+        previous action (its input), before the critic has even decided."""
+        may_end = step["t"] > 0 and (step["decision_point"] or done(step))
+        if self.pub_state is not None and may_end and int(step["prev_key"]) == self.acted_key:
+            self.pub_state.publish(P.make_state(self.node, self.acted_key, self.state[self.state_index][0].numpy()))
+
     def ready(self, step: dict) -> bool:
         key = int(step["key"])
         if done(step):
@@ -138,8 +152,13 @@ class SubControllerNode(_Controller):
             return False
         if not self.spec.hierarchical:
             return True
+        critic = self.inbox.get(P.CRITIC, key)
+        if critic is None:
+            return False
+        if not critic["option_done"]:
+            return True
         subgoal = self.inbox.get(P.SUBGOAL, key)
-        return subgoal is not None and (not subgoal["new_option"] or self.inbox.has(P.SUBGOAL_IMAGES, key))
+        return subgoal is not None and self.inbox.has(P.SUBGOAL_IMAGES, key)
 
     def process(self, step: dict) -> list:
         if done(step):
@@ -150,17 +169,14 @@ class SubControllerNode(_Controller):
             self.state = self.net.initial_state()
         x = obs
         if self.spec.hierarchical:
-            subgoal = self.inbox.get(P.SUBGOAL, key)
-            if subgoal["new_option"]:
+            if self.inbox.get(P.CRITIC, key)["option_done"]:
                 self.state = self.net.initial_state()  # h^S <- 0 for every new option (Algorithm 1)
-                g = int(subgoal["subgoal"])
+                g = int(self.inbox.get(P.SUBGOAL, key)["subgoal"])
                 self.subgoal_image = self.inbox.get(P.SUBGOAL_IMAGES, key)[g * OBS_SIZE:(g + 1) * OBS_SIZE]
             x = stack_subgoal(obs, self.subgoal_image)
         action, self.state = self.net.choose(x, self.state)
-        replies = []
-        if self.pub_state is not None:
-            replies.append((self.pub_state, P.make_state(self.node, key, self.state[self.state_index][0].numpy())))
-        replies.append((self.pub_action, P.make_record(self.node, P.INTS, P.ACTION_FIELDS, [key, action])))
+        self.acted_key = key
+        replies = [(self.pub_action, P.make_record(self.node, P.INTS, P.ACTION_FIELDS, [key, action]))]
         if self.pub_cmd is not None:
             replies.append((self.pub_cmd, self.actions.twist_msg(self.node, action, key)))
         return replies
@@ -211,26 +227,27 @@ class MetaControllerNode(_Controller):
         critic = self.inbox.get(P.CRITIC, key)
         if critic is None:
             return False
+        if not critic["option_done"]:
+            return True
         if self.spec.meta_input == "image":
             return self.inbox.has(P.OBSERVATION, key)
-        return step["t"] == 0 or not critic["option_done"] or self.inbox.has(P.SUB_STATE, prev)
+        return step["t"] == 0 or self.inbox.has(P.SUB_STATE, prev)
 
     def process(self, step: dict) -> list:
-        if done(step):
-            return []
+        """A ``subgoal`` (and ``goal_pose``) when an option starts; nothing on other steps."""
         key = int(step["key"])
-        new_option = bool(self.inbox.get(P.CRITIC, key)["option_done"]) or step["t"] == 0
-        if new_option:
-            if step["t"] == 0:
-                self.state = self.net.initial_state()  # h^M <- 0 for every episode
-                self.last_sub_state[:] = 0.0
-            elif self.spec.meta_input == "state":
-                self.last_sub_state = self.inbox.get(P.SUB_STATE, int(step["prev_key"]))
-            x = self.last_sub_state if self.spec.meta_input == "state" else self.inbox.get(P.OBSERVATION, key)
-            place = int(step["at_subgoal"]) if step["t"] > 0 else -1  # may not choose the subgoal it stands on
-            self.subgoal, self.state = self.net.choose(x, self.state, invalid=place)
-        replies = [(self.pub_subgoal, P.make_record(self.node, P.INTS, P.SUBGOAL_FIELDS, [key, self.subgoal, new_option]))]
-        if new_option and self.pub_goal is not None:
+        if done(step) or not self.inbox.get(P.CRITIC, key)["option_done"]:
+            return []
+        if step["t"] == 0:
+            self.state = self.net.initial_state()  # h^M <- 0 for every episode
+            self.last_sub_state[:] = 0.0
+        elif self.spec.meta_input == "state":
+            self.last_sub_state = self.inbox.get(P.SUB_STATE, int(step["prev_key"]))
+        x = self.last_sub_state if self.spec.meta_input == "state" else self.inbox.get(P.OBSERVATION, key)
+        place = int(step["at_subgoal"]) if step["t"] > 0 else -1  # may not choose the subgoal it stands on
+        self.subgoal, self.state = self.net.choose(x, self.state, invalid=place)
+        replies = [(self.pub_subgoal, P.make_record(self.node, P.INTS, P.SUBGOAL_FIELDS, [key, self.subgoal, 1]))]
+        if self.pub_goal is not None:
             stamp = P.Stamp.of(key)
             replies.append((self.pub_goal, self.goals.pose_msg(self.node, self.subgoal, stamp.sec, stamp.nanosec)))
         return replies

@@ -1,9 +1,12 @@
-"""``critic`` node: the internal critic (thesis 3.6) between environment and meta-controller.
+"""``critic`` node: the internal critic (thesis 3.6) between environment and controllers.
 
 For each ``env_step`` (key K, the step taken on observation ``prev_key``) it evaluates the
-domain's :class:`~hdrqn_ros.critic.InternalCritic` with the subgoal the meta-controller
-had chosen for ``prev_key`` and publishes ``critic`` (intrinsic reward, subgoal reached,
-option done). At an episode's first step it publishes ``option_done = 1`` with no reward.
+domain's :class:`~hdrqn_ros.critic.InternalCritic` with the current option's subgoal and
+publishes ``critic`` (intrinsic reward, subgoal reached, option done). At an episode's
+first step it publishes ``option_done = 1`` with no reward. The meta-controller publishes a
+``subgoal`` only when an option starts, so after announcing ``option_done`` the critic
+waits for the subgoal chosen at that key. A critic that (re)starts mid-option does not
+know the option's subgoal: it announces ``option_done`` so that a new option starts.
 """
 from __future__ import annotations
 
@@ -14,7 +17,7 @@ from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.middleware import Middleware
 from hdrqn_ros.nodes import protocol as P
 from hdrqn_ros.nodes.common import ENV_DEFAULTS, env_kwargs, run_node
-from hdrqn_ros.nodes.follower import StepFollower
+from hdrqn_ros.nodes.follower import StepFollower, done
 
 
 def step_batch(step: dict, obs: np.ndarray | None = None) -> StepBatch:
@@ -40,6 +43,8 @@ class CriticNode(StepFollower):
         self.pub = node.create_publisher(P.FLOATS, P.CRITIC)
         node.create_subscription(P.FLOATS, P.ENV_STEP, self.on_env_step)
         node.create_subscription(P.INTS, P.SUBGOAL, self._on_subgoal)
+        self.option_subgoal = -1  # the current option's subgoal (-1: unknown)
+        self.choice_at = 0  # key at which we announced option_done: its subgoal is the next option's
 
     def _on_subgoal(self, msg) -> None:
         rec = self.decode(P.SUBGOAL, lambda: P.read_record(msg, P.SUBGOAL_FIELDS, np.int64))
@@ -48,16 +53,25 @@ class CriticNode(StepFollower):
             self.put(P.SUBGOAL, rec["key"], rec["subgoal"])
 
     def ready(self, step: dict) -> bool:
-        return step["t"] == 0 or self.inbox.has(P.SUBGOAL, int(step["prev_key"]))
+        prev = int(step["prev_key"])
+        return step["t"] == 0 or prev != self.choice_at or self.inbox.has(P.SUBGOAL, prev)
 
     def process(self, step: dict) -> list:
-        if step["t"] == 0:
-            values = [step["key"], 0.0, 0.0, 1.0, -1.0]
+        key, prev = int(step["key"]), int(step["prev_key"])
+        if step["t"] > 0 and prev == self.choice_at:
+            self.option_subgoal = int(self.inbox.get(P.SUBGOAL, prev))
+        if step["t"] == 0 or self.option_subgoal < 0:
+            values = [key, 0.0, 0.0, 1.0, -1.0]
         else:
-            subgoal = self.inbox.get(P.SUBGOAL, int(step["prev_key"]))
-            result = self.critic.evaluate(step_batch(step), np.array([subgoal]))
-            values = [step["key"], result.intrinsic[0], result.reached[0], result.option_done[0], subgoal]
+            result = self.critic.evaluate(step_batch(step), np.array([self.option_subgoal]))
+            values = [key, result.intrinsic[0], result.reached[0], result.option_done[0], self.option_subgoal]
+        if values[3] and not done(step):
+            self.choice_at, self.option_subgoal = key, -1
         return [(self.pub, P.make_record(self.node, P.FLOATS, P.CRITIC_FIELDS, values))]
+
+    def reset(self) -> None:
+        super().reset()
+        self.option_subgoal, self.choice_at = -1, 0
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -118,10 +118,10 @@ class GroupAssembler(StepFollower):
             return False
         if not self.spec.hierarchical:
             return True
-        subgoal, critic = box.get(P.SUBGOAL, prev), box.get(P.CRITIC, key)
-        if subgoal is None or critic is None:
+        critic = box.get(P.CRITIC, key)
+        if critic is None:
             return False
-        if subgoal["new_option"] and not box.has(P.SUBGOAL_IMAGES, prev):
+        if self.option_next and not (box.has(P.SUBGOAL, prev) and box.has(P.SUBGOAL_IMAGES, prev)):
             return False
         return not (self.spec.meta_input == "state" and critic["option_done"]) or box.has(P.SUB_STATE, prev)
 
@@ -139,6 +139,7 @@ class GroupAssembler(StepFollower):
 
     def _begin(self, key: int, obs: np.ndarray) -> None:
         self.open = True
+        self.option_next = True  # an option starts at the episode's first step
         self.recorder = EpisodeRecorder(*self.recorder_args)
         self.prev_obs = obs
         self.subgoal_image = np.zeros_like(obs)
@@ -151,9 +152,12 @@ class GroupAssembler(StepFollower):
         action = int(box.get(P.ACTION, prev)["action"])
         env = step_batch(step, obs)
         if self.spec.hierarchical:
-            sub_rec, critic = box.get(P.SUBGOAL, prev), box.get(P.CRITIC, key)
-            subgoal, new_option = int(sub_rec["subgoal"]), bool(sub_rec["new_option"])
+            critic, new_option = box.get(P.CRITIC, key), self.option_next
+            if new_option:  # the meta-controller publishes a subgoal when an option starts
+                self.option_subgoal = int(box.get(P.SUBGOAL, prev)["subgoal"])
+            subgoal = self.option_subgoal
             intrinsic, reached, option_done = critic["intrinsic"], bool(critic["reached"]), bool(critic["option_done"])
+            self.option_next = option_done
             sub_terminal = reached or bool(step["terminated"])
         else:
             subgoal, new_option = -1, step["t"] == 1

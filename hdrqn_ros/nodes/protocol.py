@@ -7,9 +7,13 @@ first element. Layout labels name every element, so ``ros2 topic echo`` is reada
 Nodes join their inputs by key, so no message is ever paired with another step's, even
 when DDS delivers different writers' samples in another order, or a node restarts.
 
-A transition ``prev_key -> key`` is: observation(prev_key), subgoal(prev_key),
-action(prev_key), then env_step(key) (what stepping did) and critic(key) (intrinsic
-reward of that step), and observation(key).
+A transition ``prev_key -> key`` is: observation(prev_key), action(prev_key), the
+option's subgoal (published at the key where the option started), then env_step(key)
+(what stepping did), critic(key) (intrinsic reward of that step) and observation(key).
+
+Per step the loop is env -> critic -> sub-controller -> env; only where an option ends
+does the meta-controller join in (env -> critic -> meta -> sub -> env), with hDRQNv2's
+sub-controller handing its LSTM state (``sub_state``) to it at such steps.
 """
 from __future__ import annotations
 
@@ -53,6 +57,7 @@ CRITIC_FIELDS = ("key", "intrinsic", "reached", "option_done", "subgoal")
 """``critic``: the internal critic's verdict on the step into ``key`` for ``subgoal``
 (option_done = 1 at an episode's first step: the meta-controller must choose)."""
 SUBGOAL_FIELDS = ("key", "subgoal", "new_option")
+"""``subgoal``: published by the meta-controller when an option starts (``new_option`` = 1)."""
 ACTION_FIELDS = ("key", "action")
 CREDIT_FIELDS = ("credit_steps", "eps_sub", "eps_meta", "acked_key", "epoch")
 """``learner_credit``: the env may take steps while its step count < ``credit_steps``;

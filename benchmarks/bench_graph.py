@@ -38,27 +38,31 @@ def _node(module: str, *args: str) -> list[str]:
     return head + ["--ros-args", "-p", f"algo:={ALGO}", *args]
 
 
-def acting_rate(seconds: float, log_dir: Path) -> dict:
-    """Lock-step steps/s of env + critic + meta + sub (epsilon 0.1, no learner)."""
-    specs = [ProcessSpec("environment", _node("hdrqn_ros.nodes.environment")),
-             ProcessSpec("critic", _node("hdrqn_ros.nodes.critic")),
-             ProcessSpec("meta", _node("hdrqn_ros.nodes.controllers:main_meta", "-p", "epsilon:=0.1")),
-             ProcessSpec("sub", _node("hdrqn_ros.nodes.controllers:main_sub", "-p", "epsilon:=0.1"))]
+def acting_rate(seconds: float, log_dir: Path, groups: int = 1) -> dict:
+    """Lock-step steps/s of env + critic + meta + sub per group (epsilon 0.1, no learner)."""
+    specs = []
+    for i in range(groups):
+        ns = ("-r", f"__ns:=/g{i}", "-p", f"seed:={i}")
+        specs += [ProcessSpec(f"g{i}/environment", _node("hdrqn_ros.nodes.environment", *ns)),
+                  ProcessSpec(f"g{i}/critic", _node("hdrqn_ros.nodes.critic", *ns)),
+                  ProcessSpec(f"g{i}/meta", _node("hdrqn_ros.nodes.controllers:main_meta", "-p", "epsilon:=0.1", *ns)),
+                  ProcessSpec(f"g{i}/sub", _node("hdrqn_ros.nodes.controllers:main_sub", "-p", "epsilon:=0.1", *ns))]
     sup = Supervisor(specs, log_dir=log_dir)
     sup.start()
     mw = CycloneMiddleware([])
     steps: list[float] = []
     try:
         node = mw.create_node("bench_probe")
-        node.create_subscription(P.FLOATS, P.ENV_STEP, lambda m: steps.append(time.perf_counter()))
-        mw.spin(until=lambda: len(steps) > 200, timeout_s=120)  # warm-up: all nodes up, loop running
+        for i in range(groups):
+            node.create_subscription(P.FLOATS, f"/g{i}/{P.ENV_STEP}", lambda m: steps.append(time.perf_counter()))
+        mw.spin(until=lambda: len(steps) > 200 * groups, timeout_s=120)  # warm-up: all nodes up, loops running
         n0, t0 = len(steps), time.perf_counter()
         mw.spin(timeout_s=seconds)
         rate = (len(steps) - n0) / (time.perf_counter() - t0)
     finally:
         mw.shutdown()
         sup.stop()
-    return {"acting_steps_per_s": round(rate, 1), "acting_target": 500, "acting_ratio": round(rate / 500, 2)}
+    return {f"acting_{groups}group_steps_per_s": round(rate, 1)}
 
 
 def _config(episodes: int, num_envs: int = 1):
@@ -115,7 +119,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         out = {"machine_cores": os.cpu_count(), "seconds": args.seconds}
-        out.update(acting_rate(min(args.seconds, 20.0), tmp / "acting"))
+        for groups in (1, 2):
+            out.update(acting_rate(min(args.seconds, 20.0), tmp / f"acting{groups}", groups))
+        out["acting_target"] = 500
+        out["acting_ratio"] = round(max(out["acting_1group_steps_per_s"], out["acting_2group_steps_per_s"]) / 500, 2)
         out.update(graph_training_rate(args.seconds, tmp))
         for n in (1, 16):
             out[f"inprocess_n{n}_steps_per_s"] = round(inprocess_training_rate(args.seconds, tmp, n), 1)

@@ -22,25 +22,15 @@ first, then the launch arguments, which win; an empty argument keeps the file's 
 """
 from __future__ import annotations
 
-from pathlib import Path
-
-import yaml
-from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, EmitEvent, LogInfo, OpaqueFunction, RegisterEventHandler
 from launch.event_handlers import OnProcessExit
 from launch.events import Shutdown
-from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-PACKAGE = "hdrqn_ros"
-HIERARCHICAL_ALGOS = ("hdrqn-v2", "hdrqn-v1", "hdqn")
-"""Agents with a meta-controller and an internal critic (``ALGO_SPECS[algo].hierarchical``)."""
-ALGOS = HIERARCHICAL_ALGOS + ("drqn", "dqn")
-DEFAULT_ALGO = "hdrqn-v2"
-"""The nodes' own default ``algo`` (``hdrqn_ros.nodes.common.ENV_DEFAULTS``)."""
-SHARED_ARGS = ("algo", "env", "view")
-"""String launch arguments that, when not empty, override the ``/**`` parameter of that name."""
+from hdrqn_ros.launch_support import (ALGOS, DEFAULT_ALGO, HIERARCHICAL_ALGOS, PACKAGE, SHARED_ARGS, arg, bool_arg,
+                                      float_arg, share_dir, shared_file_parameters)
+
 META_NAV_ARGS = ("subgoal_table", "goal_pose_topic")
 """meta_controller's Nav2 adapter parameters (``hdrqn_ros.nodes.nav.META_PARAMETERS``)."""
 SUB_NAV_ARGS = ("action_table", "cmd_vel_topic", "costmap_topic")
@@ -49,71 +39,31 @@ SUB_NAV_ARGS = ("action_table", "cmd_vel_topic", "costmap_topic")
 OBSERVATION_SOURCES = ("topic", "costmap")
 
 
-def share_dir() -> Path:
-    """The package's share directory; the source tree when the package is not installed."""
-    try:
-        return Path(get_package_share_directory(PACKAGE))
-    except PackageNotFoundError:
-        return Path(__file__).resolve().parents[1]
-
-
-def shared_file_parameters(params_file: str) -> dict:
-    """The ``/**`` parameters of a ROS 2 params file (``{}`` if it has none)."""
-    try:
-        doc = yaml.safe_load(Path(params_file).read_text(encoding="utf-8")) or {}
-    except OSError as exc:
-        raise RuntimeError(f"params_file: cannot read {params_file}: {exc.strerror or exc}") from None
-    section = doc.get("/**", {}) if isinstance(doc, dict) else {}
-    params = section.get("ros__parameters", {}) if isinstance(section, dict) else {}
-    return params if isinstance(params, dict) else {}
-
-
-def _arg(context, name: str) -> str:
-    return LaunchConfiguration(name).perform(context).strip()
-
-
-def _bool_arg(context, name: str) -> bool:
-    text = _arg(context, name).lower()
-    if text in ("true", "1", "yes", "on"):
-        return True
-    if text in ("false", "0", "no", "off"):
-        return False
-    raise RuntimeError(f"launch argument {name} must be true or false, got {text!r}")
-
-
-def _float_arg(context, name: str) -> float:
-    text = _arg(context, name)
-    try:
-        return float(text)
-    except ValueError:
-        raise RuntimeError(f"launch argument {name} must be a number, got {text!r}") from None
-
-
 def _nodes(context):
-    params_file = _arg(context, "params_file")
+    params_file = arg(context, "params_file")
     file_shared = shared_file_parameters(params_file)
-    shared = {name: _arg(context, name) for name in SHARED_ARGS if _arg(context, name)}
+    shared = {name: arg(context, name) for name in SHARED_ARGS if arg(context, name)}
     algo = shared.get("algo") or str(file_shared.get("algo", DEFAULT_ALGO))
     if algo not in ALGOS:
         raise RuntimeError(f"unknown algo {algo!r}; choose one of {', '.join(ALGOS)}")
-    checkpoint = _arg(context, "checkpoint")
+    checkpoint = arg(context, "checkpoint")
     if not checkpoint:
         raise RuntimeError("launch argument checkpoint is required (e.g. checkpoint:=runs/x/checkpoints/last.pt)")
-    epsilon = _float_arg(context, "epsilon")
+    epsilon = float_arg(context, "epsilon")
     if not 0.0 <= epsilon <= 1.0:
         raise RuntimeError(f"launch argument epsilon must be in [0, 1], got {epsilon}")
-    observation_source = _arg(context, "observation_source")
+    observation_source = arg(context, "observation_source")
     if observation_source not in OBSERVATION_SOURCES:
         raise RuntimeError(f"launch argument observation_source must be one of {OBSERVATION_SOURCES}, "
                            f"got {observation_source!r}")
-    with_environment = _bool_arg(context, "with_environment")
-    ns = _arg(context, "namespace") or "/"
+    with_environment = bool_arg(context, "with_environment")
+    ns = arg(context, "namespace") or "/"
     hierarchical = algo in HIERARCHICAL_ALGOS
 
     acting = {**shared, "checkpoint": checkpoint, "epsilon": epsilon}
-    meta_params = {**acting, **{name: _arg(context, name) for name in META_NAV_ARGS if _arg(context, name)}}
+    meta_params = {**acting, **{name: arg(context, name) for name in META_NAV_ARGS if arg(context, name)}}
     sub_params = {**acting, "observation_source": observation_source,
-                  **{name: _arg(context, name) for name in SUB_NAV_ARGS if _arg(context, name)}}
+                  **{name: arg(context, name) for name in SUB_NAV_ARGS if arg(context, name)}}
 
     actions = [LogInfo(msg=f"hdrqn_ros policy: {algo} from {checkpoint} in {ns}, epsilon {epsilon}, "
                            f"environment {'on' if with_environment else 'off'}, params {params_file}")]

@@ -23,92 +23,33 @@ exception in training) restarts it after ``respawn_delay`` and it resumes from
 """
 from __future__ import annotations
 
-from pathlib import Path
-
-import yaml
-from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, EmitEvent, LogInfo, OpaqueFunction, RegisterEventHandler
 from launch.event_handlers import OnProcessExit
 from launch.events import Shutdown
-from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-PACKAGE = "hdrqn_ros"
-HIERARCHICAL_ALGOS = ("hdrqn-v2", "hdrqn-v1", "hdqn")
-"""Agents with a meta-controller and an internal critic (``ALGO_SPECS[algo].hierarchical``)."""
-ALGOS = HIERARCHICAL_ALGOS + ("drqn", "dqn")
-DEFAULT_ALGO = "hdrqn-v2"
-"""The nodes' own default ``algo`` (``hdrqn_ros.nodes.common.ENV_DEFAULTS``)."""
+from hdrqn_ros.graph import group_namespaces
+from hdrqn_ros.launch_support import (ALGOS, DEFAULT_ALGO, HIERARCHICAL_ALGOS, PACKAGE, SHARED_ARGS, arg, bool_arg,
+                                      int_arg, share_dir, shared_file_parameters)
+
 RESPAWN_DELAY_S = 2.0
 LEARNER_FINAL_EXIT_CODES = (0, 2)
 """Learner exit codes that end the launch even with respawn: finished or stopped (0),
 bad parameters / config / checkpoint (2)."""
-SHARED_ARGS = ("algo", "env", "view")
-"""String launch arguments that, when not empty, override the ``/**`` parameter of that name."""
-
-
-def share_dir() -> Path:
-    """The package's share directory; the source tree when the package is not installed."""
-    try:
-        return Path(get_package_share_directory(PACKAGE))
-    except PackageNotFoundError:
-        return Path(__file__).resolve().parents[1]
-
-
-def group_namespaces(groups: int) -> list[str]:
-    """``["/"]`` for one group, else ``["/group0", ..., "/group<n-1>"]`` (as ``hdrqn up``)."""
-    return ["/"] if groups == 1 else [f"/group{i}" for i in range(groups)]
-
-
-def shared_file_parameters(params_file: str) -> dict:
-    """The ``/**`` parameters of a ROS 2 params file (``{}`` if it has none)."""
-    try:
-        doc = yaml.safe_load(Path(params_file).read_text(encoding="utf-8")) or {}
-    except OSError as exc:
-        raise RuntimeError(f"params_file: cannot read {params_file}: {exc.strerror or exc}") from None
-    section = doc.get("/**", {}) if isinstance(doc, dict) else {}
-    params = section.get("ros__parameters", {}) if isinstance(section, dict) else {}
-    return params if isinstance(params, dict) else {}
-
-
-def _arg(context, name: str) -> str:
-    return LaunchConfiguration(name).perform(context).strip()
-
-
-def _int_arg(context, name: str, minimum: int) -> int | None:
-    text = _arg(context, name)
-    if not text:
-        return None
-    try:
-        value = int(text)
-    except ValueError:
-        raise RuntimeError(f"launch argument {name} must be an integer, got {text!r}") from None
-    if value < minimum:
-        raise RuntimeError(f"launch argument {name} must be >= {minimum}, got {value}")
-    return value
-
-
-def _bool_arg(context, name: str) -> bool:
-    text = _arg(context, name).lower()
-    if text in ("true", "1", "yes", "on"):
-        return True
-    if text in ("false", "0", "no", "off"):
-        return False
-    raise RuntimeError(f"launch argument {name} must be true or false, got {text!r}")
 
 
 def _graph(context):
-    params_file = _arg(context, "params_file")
+    params_file = arg(context, "params_file")
     file_shared = shared_file_parameters(params_file)
-    groups = _int_arg(context, "groups", 1) or 1
-    respawn = _bool_arg(context, "respawn")
+    groups = int_arg(context, "groups", 1) or 1
+    respawn = bool_arg(context, "respawn")
 
-    shared = {name: _arg(context, name) for name in SHARED_ARGS if _arg(context, name)}
+    shared = {name: arg(context, name) for name in SHARED_ARGS if arg(context, name)}
     algo = shared.get("algo") or str(file_shared.get("algo", DEFAULT_ALGO))
     if algo not in ALGOS:
         raise RuntimeError(f"unknown algo {algo!r}; choose one of {', '.join(ALGOS)}")
-    seed = _int_arg(context, "seed", 0)
+    seed = int_arg(context, "seed", 0)
     if seed is None:
         seed = int(file_shared.get("seed", 0))
     hierarchical = algo in HIERARCHICAL_ALGOS
@@ -133,12 +74,12 @@ def _graph(context):
                             respawn=respawn, respawn_delay=RESPAWN_DELAY_S, output="screen"))
 
     learner_params = {**shared, "seed": seed, "groups": namespaces, "resume": True}
-    episodes = _int_arg(context, "episodes", 1)
+    episodes = int_arg(context, "episodes", 1)
     if episodes is not None:
         learner_params["episodes"] = episodes
     for name in ("run_dir", "config"):
-        if _arg(context, name):
-            learner_params[name] = _arg(context, name)
+        if arg(context, name):
+            learner_params[name] = arg(context, name)
     learner = Node(package=PACKAGE, executable="learner", name="learner", namespace="/",
                    parameters=[params_file, learner_params],
                    respawn=respawn, respawn_delay=RESPAWN_DELAY_S, output="screen")

@@ -44,7 +44,7 @@ class _Controller(StepFollower):
         self.spec = ALGO_SPECS[p["algo"]]
         self.state = self.net.initial_state()
         if p.get("observation_source", "topic") == "topic":  # lock-step with the environment node
-            node.create_subscription(P.FLOATS, P.ENV_STEP, self.on_env_step)
+            node.create_subscription(P.FLOATS, P.ENV_STEP, self.on_env_step, P.STEP_QOS)
         node.create_subscription(P.FLOATS, P.CREDIT, self._on_credit, LATCHED_QOS)
 
     def _on_credit(self, msg) -> None:
@@ -74,8 +74,8 @@ class SubControllerNode(_Controller):
         super().__init__(mw, "sub_controller")
         node, p = self.node, self.params
         self.subgoal_image = np.zeros((OBS_SIZE, OBS_SIZE, 3), np.uint8)
-        self.pub_action = node.create_publisher(P.INTS, P.ACTION)
-        self.pub_state = node.create_publisher(P.FLOATS, P.SUB_STATE) if self.spec.meta_input == "state" else None
+        self.pub_action = node.create_publisher(P.INTS, P.ACTION, P.STEP_QOS)
+        self.pub_state = node.create_publisher(P.FLOATS, P.SUB_STATE, P.STEP_QOS) if self.spec.meta_input == "state" else None
         self.state_index = 1 if p["meta_state"] == "c" else 0
         self.actions = nav.ActionTable.load(p["action_table"], self.net.num_actions) if p["action_table"] else None
         self.pub_cmd = node.create_publisher(self.actions.type_name, p["cmd_vel_topic"]) if self.actions else None
@@ -90,14 +90,14 @@ class SubControllerNode(_Controller):
         elif source != "topic":
             raise NodeConfigError(f"observation_source must be 'topic' or 'costmap', got {source!r}")
         else:
-            node.create_subscription(P.IMAGE, P.OBSERVATION, lambda m: self._on_image(P.OBSERVATION, m))
+            node.create_subscription(P.IMAGE, P.OBSERVATION, lambda m: self._on_image(P.OBSERVATION, m), P.STEP_QOS)
         self.acted_key = 0  # the last step key this node chose an action for
         if self.spec.hierarchical:
-            node.create_subscription(P.INTS, P.SUBGOAL, self._on_subgoal)
+            node.create_subscription(P.INTS, P.SUBGOAL, self._on_subgoal, P.STEP_QOS)
             if source == "topic":
-                node.create_subscription(P.FLOATS, P.CRITIC, self._on_critic)
+                node.create_subscription(P.FLOATS, P.CRITIC, self._on_critic, P.STEP_QOS)
                 node.create_subscription(P.IMAGE, P.SUBGOAL_IMAGES, lambda m: self._on_image(
-                    P.SUBGOAL_IMAGES, m, OBS_SIZE * self.net.num_subgoals))
+                    P.SUBGOAL_IMAGES, m, OBS_SIZE * self.net.num_subgoals), P.STEP_QOS)
 
     def _on_subgoal(self, msg) -> None:
         rec = self.decode(P.SUBGOAL, lambda: P.read_record(msg, P.SUBGOAL_FIELDS, np.int64))
@@ -203,12 +203,12 @@ class MetaControllerNode(_Controller):
         self.pub_goal = node.create_publisher(nav.POSE_STAMPED, p["goal_pose_topic"]) if self.goals else None
         self.subgoal = -1
         self.last_sub_state = np.zeros(lstm_state_size, np.float32)
-        self.pub_subgoal = node.create_publisher(P.INTS, P.SUBGOAL)
-        node.create_subscription(P.FLOATS, P.CRITIC, self._on_critic)
+        self.pub_subgoal = node.create_publisher(P.INTS, P.SUBGOAL, P.STEP_QOS)
+        node.create_subscription(P.FLOATS, P.CRITIC, self._on_critic, P.STEP_QOS)
         if self.spec.meta_input == "state":
-            node.create_subscription(P.FLOATS, P.SUB_STATE, self._on_sub_state)
+            node.create_subscription(P.FLOATS, P.SUB_STATE, self._on_sub_state, P.STEP_QOS)
         else:
-            node.create_subscription(P.IMAGE, P.OBSERVATION, lambda m: self._on_image(P.OBSERVATION, m))
+            node.create_subscription(P.IMAGE, P.OBSERVATION, lambda m: self._on_image(P.OBSERVATION, m), P.STEP_QOS)
 
     def _on_critic(self, msg) -> None:
         rec = self.decode(P.CRITIC, lambda: P.read_record(msg, P.CRITIC_FIELDS))

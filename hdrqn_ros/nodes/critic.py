@@ -6,7 +6,8 @@ publishes ``critic`` (intrinsic reward, subgoal reached, option done). At an epi
 first step it publishes ``option_done = 1`` with no reward. The meta-controller publishes a
 ``subgoal`` only when an option starts, so after announcing ``option_done`` the critic
 waits for the subgoal chosen at that key. A critic that (re)starts mid-option does not
-know the option's subgoal: it announces ``option_done`` so that a new option starts.
+know the option's subgoal: it gives no intrinsic reward until the next step where an
+option can start (a decision point), and ends the option there.
 """
 from __future__ import annotations
 
@@ -40,9 +41,9 @@ class CriticNode(StepFollower):
         p = node.declare_parameters(dict(ENV_DEFAULTS))
         probe = make_batch(p["env"], 1, **env_kwargs(p["env"], p["view"]))
         self.critic, self.num_subgoals = probe.critic(), probe.num_subgoals
-        self.pub = node.create_publisher(P.FLOATS, P.CRITIC)
-        node.create_subscription(P.FLOATS, P.ENV_STEP, self.on_env_step)
-        node.create_subscription(P.INTS, P.SUBGOAL, self._on_subgoal)
+        self.pub = node.create_publisher(P.FLOATS, P.CRITIC, P.STEP_QOS)
+        node.create_subscription(P.FLOATS, P.ENV_STEP, self.on_env_step, P.STEP_QOS)
+        node.create_subscription(P.INTS, P.SUBGOAL, self._on_subgoal, P.STEP_QOS)
         self.option_subgoal = -1  # the current option's subgoal (-1: unknown)
         self.choice_at = 0  # key at which we announced option_done: its subgoal is the next option's
 
@@ -60,8 +61,10 @@ class CriticNode(StepFollower):
         key, prev = int(step["key"]), int(step["prev_key"])
         if step["t"] > 0 and prev == self.choice_at:
             self.option_subgoal = int(self.inbox.get(P.SUBGOAL, prev))
-        if step["t"] == 0 or self.option_subgoal < 0:
+        if step["t"] == 0:
             values = [key, 0.0, 0.0, 1.0, -1.0]
+        elif self.option_subgoal < 0:  # (re)started mid-option: end it where a new one can start
+            values = [key, 0.0, 0.0, float(step["decision_point"] or done(step)), -1.0]
         else:
             result = self.critic.evaluate(step_batch(step), np.array([self.option_subgoal]))
             values = [key, result.intrinsic[0], result.reached[0], result.option_done[0], self.option_subgoal]

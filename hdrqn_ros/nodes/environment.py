@@ -36,12 +36,12 @@ class EnvironmentNode:
         if self.period_ns <= 0 or p["action_timeout"] <= 0:
             raise NodeConfigError("step_period and action_timeout must be > 0")
         self.batch = make_batch(p["env"], 1, **env_kwargs(p["env"], p["view"]))
-        self.pub_obs = node.create_publisher(P.IMAGE, P.OBSERVATION)
-        self.pub_images = node.create_publisher(P.IMAGE, P.SUBGOAL_IMAGES)
-        self.pub_step = node.create_publisher(P.FLOATS, P.ENV_STEP)
+        self.pub_obs = node.create_publisher(P.IMAGE, P.OBSERVATION, P.STEP_QOS)
+        self.pub_images = node.create_publisher(P.IMAGE, P.SUBGOAL_IMAGES, P.STEP_QOS)
+        self.pub_step = node.create_publisher(P.FLOATS, P.ENV_STEP, P.STEP_QOS)
         self.pub_pose = node.create_publisher(P.POSE_STAMPED, P.POSE)
         self.pub_clock = node.create_publisher(P.CLOCK_TYPE, P.CLOCK) if p["publish_clock"] else None
-        node.create_subscription(P.INTS, P.ACTION, self._on_action)
+        node.create_subscription(P.INTS, P.ACTION, self._on_action, P.STEP_QOS)
         node.create_subscription(P.FLOATS, P.CREDIT, self._on_credit, LATCHED_QOS)
         node.create_timer(min(0.5, p["action_timeout"]), self._watchdog)
         self.credit = 0  # the learner lets this env take steps while self.steps < credit
@@ -70,11 +70,12 @@ class EnvironmentNode:
 
     def _publish(self) -> None:
         node, key, frame = self.node, self.key, self.params["frame_id"]
+        # env_step first: the critic needs only it, and the others wait for the critic
+        self.pub_step.publish(P.make_record(node, P.FLOATS, P.STEP_FIELDS, [self.step_record[f] for f in P.STEP_FIELDS]))
+        self.pub_obs.publish(P.make_image(node, key, self.obs, frame))
         if self.step_record["decision_point"]:
             images = [self.batch.subgoal_images(np.array([g]))[0] for g in range(self.batch.num_subgoals)]
             self.pub_images.publish(P.make_image(node, key, np.concatenate(images), frame))
-        self.pub_obs.publish(P.make_image(node, key, self.obs, frame))
-        self.pub_step.publish(P.make_record(node, P.FLOATS, P.STEP_FIELDS, [self.step_record[f] for f in P.STEP_FIELDS]))
         if self.pub_clock is not None:
             self.pub_clock.publish(node.msg(P.CLOCK_TYPE)(clock=P.make_time(node, key)))
         self.pub_pose.publish(P.make_pose(node, key, frame, *self._pose_xy()))

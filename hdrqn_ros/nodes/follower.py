@@ -63,6 +63,8 @@ class StepFollower:
         self.replies: OrderedDict[int, list] = OrderedDict()
         self.last_key = 0
         self.rejected = 0
+        self._head_seen: int | None = None
+        node.create_timer(5.0, self._report_stall)
 
     # -- inputs ----------------------------------------------------------------------------------
     def on_env_step(self, msg) -> None:
@@ -118,6 +120,17 @@ class StepFollower:
 
     def received(self, step: dict) -> None:
         """Called for every well-formed ``env_step`` on arrival (before ordering)."""
+
+    def _report_stall(self) -> None:
+        """Log once per 5 s while the same step waits at the head of the queue."""
+        head = int(self.queue[0]["key"]) if self.queue else None
+        if head is not None and head == self._head_seen:
+            step = self.queue[0]
+            have = sorted(t for t, slot in self.inbox.slots.items() if head in slot or int(step["prev_key"]) in slot)
+            self.node.logger.warning("step key %d (t=%d, episode %d) still waits for its inputs; have %s for it or "
+                                     "its previous step %d; %d steps queued", head, step["t"], step["episode"],
+                                     have, int(step["prev_key"]), len(self.queue))
+        self._head_seen = head
 
     def ready(self, step: dict) -> bool:
         raise NotImplementedError

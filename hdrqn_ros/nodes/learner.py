@@ -67,17 +67,17 @@ class GroupAssembler(StepFollower):
         self.last_credit: tuple | None = None
         self.log = log
         t = self.topic
-        node.create_subscription(P.FLOATS, t(P.ENV_STEP), self.on_env_step, P.LEARNER_QOS)
-        node.create_subscription(P.IMAGE, t(P.OBSERVATION), lambda m: self._image(P.OBSERVATION, m, 1), P.LEARNER_QOS)
-        node.create_subscription(P.INTS, t(P.ACTION), lambda m: self._ints(P.ACTION, P.ACTION_FIELDS, m), P.LEARNER_QOS)
+        node.create_subscription(P.FLOATS, t(P.ENV_STEP), self.on_env_step, P.STEP_QOS)
+        node.create_subscription(P.IMAGE, t(P.OBSERVATION), lambda m: self._image(P.OBSERVATION, m, 1), P.STEP_QOS)
+        node.create_subscription(P.INTS, t(P.ACTION), lambda m: self._ints(P.ACTION, P.ACTION_FIELDS, m), P.STEP_QOS)
         if self.spec.hierarchical:
             node.create_subscription(P.IMAGE, t(P.SUBGOAL_IMAGES),
-                                     lambda m: self._image(P.SUBGOAL_IMAGES, m, self.num_subgoals), P.LEARNER_QOS)
+                                     lambda m: self._image(P.SUBGOAL_IMAGES, m, self.num_subgoals), P.STEP_QOS)
             node.create_subscription(P.INTS, t(P.SUBGOAL), lambda m: self._ints(P.SUBGOAL, P.SUBGOAL_FIELDS, m),
-                                     P.LEARNER_QOS)
-            node.create_subscription(P.FLOATS, t(P.CRITIC), self._critic, P.LEARNER_QOS)
+                                     P.STEP_QOS)
+            node.create_subscription(P.FLOATS, t(P.CRITIC), self._critic, P.STEP_QOS)
         if self.spec.meta_input == "state":
-            node.create_subscription(P.FLOATS, t(P.SUB_STATE), self._sub_state, P.LEARNER_QOS)
+            node.create_subscription(P.FLOATS, t(P.SUB_STATE), self._sub_state, P.STEP_QOS)
         self.credit_pub = node.create_publisher(P.FLOATS, t(P.CREDIT), LATCHED_QOS)
 
     def topic(self, name: str) -> str:

@@ -64,8 +64,11 @@ CREDIT_FIELDS = ("credit_steps", "eps_sub", "eps_meta", "acked_key", "epoch")
 the controllers explore with ``eps_sub``/``eps_meta``; ``acked_key`` is the last key
 the learner stored; ``epoch`` changes when the learner restarts."""
 
-LEARNER_QOS = QoS(depth=100)
-"""The learner's subscriptions: reliable, keep-last 100 (it may be busy with an update)."""
+STEP_QOS = QoS(depth=1000)
+"""The per-step protocol topics: reliable, volatile, keep-last 1000. A node off the
+critical path (the meta-controller between option ends, the learner during an update)
+may fall behind by many steps without losing a sample; 1000 steps of observations are
+about 6 MB per reader."""
 
 MAX_KEY = 2**53
 """Keys are exact in float64 up to 2^53 ns (104 days of simulated time)."""

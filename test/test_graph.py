@@ -292,6 +292,8 @@ def test_malformed_messages_are_rejected_and_logged(domain, tmp_path):
             return any(a["key"] == k for a in actions)
 
         assert any(sub_answers(key + i) for i in range(1, 11)), "the sub-controller never answered"
+        for pub in (action_pub, credit_pub, obs_pub, step_pub):  # every reader has found our writers
+            mw.spin(until=lambda: bool(pub.writer.get_matched_subscriptions()), timeout_s=20)
         action_pub.publish(P.make_record(node, P.INTS, P.ACTION_FIELDS, [key, 99]))  # action out of range
         action_pub.publish(P.make_record(node, P.INTS, ("key",), [key]))  # too few values
         credit_pub.publish(P.make_record(node, P.FLOATS, P.CREDIT_FIELDS, [np.nan, 0, 0, 0, 0]))  # NaN

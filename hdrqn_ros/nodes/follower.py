@@ -55,6 +55,10 @@ class StepFollower:
     (publisher, message)`` (the replies, remembered for repeats) and may override
     ``reset()``. ``step`` is the ``env_step`` record as a dict of :data:`P.STEP_FIELDS`."""
 
+    skip_stale = True
+    """Drop queued steps older than a step that is ready (the loop went on without them:
+    their inputs were lost). The learner keeps them (an episode needs every step)."""
+
     def __init__(self, node, capacity: int = DEFAULT_CAPACITY):
         self.node = node
         self.capacity = capacity
@@ -106,6 +110,12 @@ class StepFollower:
 
     # -- processing ------------------------------------------------------------------------------
     def pump(self) -> None:
+        if self.skip_stale and self.queue and not self.ready(self.queue[0]):
+            ready_at = next((i for i, step in enumerate(self.queue) if i and self.ready(step)), 0)
+            for _ in range(ready_at):
+                stale = self.queue.popleft()
+                self.node.logger.warning("skipping step key %d: a later step is complete, its inputs are not",
+                                         int(stale["key"]))
         while self.queue and self.ready(self.queue[0]):
             step = self.queue.popleft()
             key = int(step["key"])

@@ -51,6 +51,8 @@ EPISODE_QUEUE = 256
 class GroupAssembler(StepFollower):
     """One environment group's messages -> :class:`StepRecord` rows -> replay episodes."""
 
+    skip_stale = False  # a transition needs every step of its episode
+
     def __init__(self, node, namespace: str, learner: Learner, episodes: "queue.Queue", log=None):
         super().__init__(node)
         self.ns = namespace.rstrip("/")

@@ -11,6 +11,8 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from hdrqn_ros.yaml_files import read_mapping
+
 ALGOS = ("hdrqn-v2", "hdrqn-v1", "hdqn", "drqn", "dqn")
 Algo = Literal["hdrqn-v2", "hdrqn-v1", "hdqn", "drqn", "dqn"]
 
@@ -136,16 +138,7 @@ def build_config(files: list[str | Path] = (), **overrides: Any) -> TrainConfig:
     """
     data: dict[str, Any] = TrainConfig().model_dump()  # nested sections merge onto the defaults
     for file in files:
-        path = Path(file)
-        try:
-            loaded = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
-        except OSError as exc:
-            raise ConfigError(f"cannot read config {path}: {exc.strerror or exc}") from None
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{path} is not valid YAML: {exc}") from None
-        if not isinstance(loaded, dict):
-            raise ConfigError(f"{path}: top level must be a mapping, got {type(loaded).__name__}")
-        data = _merge(data, loaded)
+        data = _merge(data, read_mapping(file, ConfigError, "config ", empty_ok=True))
     data = _merge(data, {k: v for k, v in overrides.items() if v is not None})
     try:
         return TrainConfig.model_validate(data)

@@ -19,6 +19,7 @@ from typing import Any
 import yaml
 
 from hdrqn_ros.middleware.port import ParameterError, RosArgsError
+from hdrqn_ros.yaml_files import read_mapping
 
 _FLAGS_WITH_VALUE = {"-p", "--param", "-r", "--remap", "--params-file", "--log-level", "-e", "--enclave"}
 _FLAGS_ALONE = {"--disable-rosout-logs", "--disable-stdout-logs", "--disable-external-lib-logs",
@@ -134,14 +135,7 @@ def parse_value(text: str) -> Any:
 def load_params_file(path: str | Path) -> list[tuple[str, str, Any]]:
     """Read a ROS 2 parameters YAML into (node pattern, name, value) entries."""
     path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ParameterError(f"cannot read parameters file {path}: {exc.strerror or exc}") from None
-    except yaml.YAMLError as exc:
-        raise ParameterError(f"{path} is not valid YAML: {exc}") from None
-    if not isinstance(doc, dict):
-        raise ParameterError(f"{path}: expected 'node_name: {{ros__parameters: ...}}' at the top level")
+    doc = read_mapping(path, ParameterError, "parameters file ")
     entries: list[tuple[str, str, Any]] = []
     for pattern, body in doc.items():
         _collect(path, str(pattern), body, entries)

@@ -10,10 +10,10 @@ import math
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from hdrqn_ros.envs.gridworld import AGENT, FREE, GOAL0, GOAL_NAMES, PALETTE, WALL
 from hdrqn_ros.middleware.messages import as_array
+from hdrqn_ros.yaml_files import read_mapping
 
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 TWIST = "geometry_msgs/msg/Twist"
@@ -36,14 +36,7 @@ class NavConfigError(ValueError):
 
 def _read(path, allowed: set[str], required: set[str]) -> dict:
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise NavConfigError(f"cannot read {path}: {exc.strerror or exc}") from None
-    except yaml.YAMLError as exc:
-        raise NavConfigError(f"{path} is not valid YAML: {exc}") from None
-    if not isinstance(data, dict):
-        raise NavConfigError(f"{path}: top level must be a mapping, got {type(data).__name__}")
+    data = read_mapping(path, NavConfigError)
     if unknown := set(data) - allowed:
         raise NavConfigError(f"{path}: unknown key(s) {sorted(map(str, unknown))}; allowed: {sorted(allowed)}")
     if missing := required - set(data):

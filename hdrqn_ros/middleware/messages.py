@@ -11,7 +11,6 @@ copy instead of Python's element-by-element path (about 100x faster for an image
 """
 from __future__ import annotations
 
-import array
 import dataclasses
 import threading
 from functools import lru_cache
@@ -23,6 +22,8 @@ from cyclonedds.idl._machinery import Machine, PrimitiveMachine, SequenceMachine
 from cyclonedds.idl._support import Endianness
 from rosbags.interfaces import Nodetype
 from rosbags.typesys import Stores, get_typestore
+
+from hdrqn_ros.middleware.arrays import as_array
 
 _IDL = {"bool": types.uint8, "byte": types.uint8, "char": types.uint8, "octet": types.uint8,
         "int8": types.int8, "uint8": types.uint8, "int16": types.int16, "uint16": types.uint16,
@@ -160,15 +161,6 @@ def _install_fast_sequences(cls: type, fields: dict[str, np.dtype]) -> None:
         if isinstance(machine, StructMachine):
             for fname, dtype in fields.items():
                 machine.members_machines[fname] = _NumpySequenceMachine(dtype)
-
-
-def as_array(data: Any, dtype) -> np.ndarray:
-    """A message's array field as a 1-D numpy array (numpy, ``array.array``, bytes or list)."""
-    if isinstance(data, np.ndarray):
-        return data.astype(dtype, copy=False)
-    if isinstance(data, (bytes, bytearray, memoryview, array.array)):
-        return np.frombuffer(data, dtype=dtype)
-    return np.asarray(data, dtype=dtype)
 
 
 def to_rosbags(msg: Any, type_name: str | None = None) -> Any:

@@ -59,8 +59,11 @@ class StepFollower:
     """Drop queued steps older than a step that is ready (the loop went on without them:
     their inputs were lost). The learner keeps them (an episode needs every step)."""
 
-    def __init__(self, node, capacity: int = DEFAULT_CAPACITY):
+    def __init__(self, node=None, capacity: int = DEFAULT_CAPACITY, logger=None):
+        """``node``: the middleware node (logger, topic names, a stall-report timer); without
+        one (reading a bag) give a ``logger``."""
         self.node = node
+        self.logger = logger if logger is not None else node.logger
         self.capacity = capacity
         self.inbox = KeyedInbox(capacity)
         self.queue: deque[dict] = deque()
@@ -68,7 +71,8 @@ class StepFollower:
         self.last_key = 0
         self.rejected = 0
         self._head_seen: int | None = None
-        node.create_timer(5.0, self._report_stall)
+        if node is not None:
+            node.create_timer(5.0, self._report_stall)
 
     # -- inputs ----------------------------------------------------------------------------------
     def on_env_step(self, msg) -> None:
@@ -82,14 +86,14 @@ class StepFollower:
                 pub.publish(reply)
             return
         if step["t"] == 0 and key <= self.last_key:
-            self.node.logger.info("the environment restarted (step keys start over): resynchronising")
+            self.logger.info("the environment restarted (step keys start over): resynchronising")
             self.reset()
         elif key <= self.last_key or (self.queue and key <= self.queue[-1]["key"]):
             return  # stale or repeated before we answered
         self.queue.append(step)
         if len(self.queue) > self.capacity:
             dropped = self.queue.popleft()
-            self.node.logger.warning("inputs for step key %d never arrived; skipping it", int(dropped["key"]))
+            self.logger.warning("inputs for step key %d never arrived; skipping it", int(dropped["key"]))
         self.pump()
 
     def put(self, topic: str, key: int, value: Any) -> None:
@@ -104,8 +108,8 @@ class StepFollower:
         except (P.ProtocolError, ValueError, TypeError, AttributeError) as exc:
             self.rejected += 1
             if self.rejected <= 10 or self.rejected % 1000 == 0:
-                self.node.logger.warning("rejected a message on %s: %s (%d rejected so far)",
-                                         self.node.resolve_topic(topic), exc, self.rejected)
+                name = self.node.resolve_topic(topic) if self.node is not None else topic
+                self.logger.warning("rejected a message on %s: %s (%d rejected so far)", name, exc, self.rejected)
             return None
 
     # -- processing ------------------------------------------------------------------------------
@@ -114,7 +118,7 @@ class StepFollower:
             ready_at = next((i for i, step in enumerate(self.queue) if i and self.ready(step)), 0)
             for _ in range(ready_at):
                 stale = self.queue.popleft()
-                self.node.logger.warning("skipping step key %d: a later step is complete, its inputs are not",
+                self.logger.warning("skipping step key %d: a later step is complete, its inputs are not",
                                          int(stale["key"]))
         while self.queue and self.ready(self.queue[0]):
             step = self.queue.popleft()
@@ -137,7 +141,7 @@ class StepFollower:
         if head is not None and head == self._head_seen:
             step = self.queue[0]
             have = sorted(t for t, slot in self.inbox.slots.items() if head in slot or int(step["prev_key"]) in slot)
-            self.node.logger.warning("step key %d (t=%d, episode %d) still waits for its inputs; have %s for it or "
+            self.logger.warning("step key %d (t=%d, episode %d) still waits for its inputs; have %s for it or "
                                      "its previous step %d; %d steps queued", head, step["t"], step["episode"],
                                      have, int(step["prev_key"]), len(self.queue))
         self._head_seen = head

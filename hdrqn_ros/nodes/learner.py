@@ -22,18 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrqn_ros.agents.networks import lstm_state_size
 from hdrqn_ros.agents.weights import encode_weights
 from hdrqn_ros.config import build_config, parse_set
-from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
 from hdrqn_ros.nodes import protocol as P
-from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, check_algo, env_kwargs, obs_digest, run_node
-from hdrqn_ros.nodes.critic import step_batch
-from hdrqn_ros.nodes.follower import StepFollower, done
-from hdrqn_ros.training.episodes import EpisodeRecorder
+from hdrqn_ros.nodes.assembly import TransitionAssembler
+from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, check_algo, env_kwargs, run_node
 from hdrqn_ros.training.learner import EVAL_SEED_OFFSET, Learner, evaluate
-from hdrqn_ros.training.rollout import StepRecord
 
 PARAMETERS = {**ENV_DEFAULTS, "config": "", "overrides": [""], "episodes": 1000, "run_dir": "runs/graph",
               "groups": ["/"], "resume": False, "weights_every": 25, "credit_window": 20, "max_owed_updates": 2,
@@ -48,158 +43,17 @@ EPISODE_QUEUE = 256
 """Finished episodes waiting for the training thread (bounded; the credit keeps it short)."""
 
 
-class GroupAssembler(StepFollower):
-    """One environment group's messages -> :class:`StepRecord` rows -> replay episodes."""
-
-    skip_stale = False  # a transition needs every step of its episode
+class GroupAssembler(TransitionAssembler):
+    """A :class:`TransitionAssembler` fed by the learner node's subscriptions to one group,
+    which also publishes the group's ``learner_credit``."""
 
     def __init__(self, node, namespace: str, learner: Learner, episodes: "queue.Queue", log=None):
-        super().__init__(node)
-        self.ns = namespace.rstrip("/")
-        self.learner, self.episodes = learner, episodes
-        self.spec = learner.agent.spec
-        self.num_subgoals = learner.agent.num_subgoals
-        cfg = learner.cfg
-        self.recorder_args = (1, self.spec.hierarchical, cfg.sub.gamma, cfg.meta.gamma, cfg.smdp_discount)
-        self.env_steps_seen = 0  # the env's own step count, from its latest env_step
-        self.transitions = 0
-        self.skipped = 0  # steps seen while waiting for an episode boundary
-        self.lost_episodes = 0  # episodes cut short by missing messages or restarts
-        self.open = False
+        super().__init__(namespace, learner.cfg, learner.agent.num_subgoals,
+                         lambda *episode: episodes.put(episode), node=node, log=log)
         self.last_credit: tuple | None = None
-        self.log = log
-        t = self.topic
-        node.create_subscription(P.FLOATS, t(P.ENV_STEP), self.on_env_step, P.STEP_QOS)
-        node.create_subscription(P.IMAGE, t(P.OBSERVATION), lambda m: self._image(P.OBSERVATION, m, 1), P.STEP_QOS)
-        node.create_subscription(P.INTS, t(P.ACTION), lambda m: self._ints(P.ACTION, P.ACTION_FIELDS, m), P.STEP_QOS)
-        if self.spec.hierarchical:
-            node.create_subscription(P.IMAGE, t(P.SUBGOAL_IMAGES),
-                                     lambda m: self._image(P.SUBGOAL_IMAGES, m, self.num_subgoals), P.STEP_QOS)
-            node.create_subscription(P.INTS, t(P.SUBGOAL), lambda m: self._ints(P.SUBGOAL, P.SUBGOAL_FIELDS, m),
-                                     P.STEP_QOS)
-            node.create_subscription(P.FLOATS, t(P.CRITIC), self._critic, P.STEP_QOS)
-        if self.spec.meta_input == "state":
-            node.create_subscription(P.FLOATS, t(P.SUB_STATE), self._sub_state, P.STEP_QOS)
-        self.credit_pub = node.create_publisher(P.FLOATS, t(P.CREDIT), LATCHED_QOS)
-
-    def topic(self, name: str) -> str:
-        return f"{self.ns}/{name}"
-
-    # -- inputs --------------------------------------------------------------------------------
-    def _image(self, topic: str, msg, rows: int) -> None:
-        got = self.decode(self.topic(topic), lambda: P.read_image(msg, OBS_SIZE * rows, OBS_SIZE))
-        if got is not None:
-            self.put(topic, *got)
-
-    def _ints(self, topic: str, fields, msg) -> None:
-        rec = self.decode(self.topic(topic), lambda: P.read_record(msg, fields, np.int64))
-        if rec is not None:
-            self.put(topic, rec["key"], rec)
-
-    def _critic(self, msg) -> None:
-        rec = self.decode(self.topic(P.CRITIC), lambda: P.read_record(msg, P.CRITIC_FIELDS))
-        if rec is not None:
-            self.put(P.CRITIC, rec["key"], rec)
-
-    def _sub_state(self, msg) -> None:
-        got = self.decode(self.topic(P.SUB_STATE), lambda: P.read_state(msg, lstm_state_size))
-        if got is not None:
-            self.put(P.SUB_STATE, *got)
-
-    def received(self, step: dict) -> None:
-        self.env_steps_seen = int(step["env_steps"])
-
-    # -- assembly -----------------------------------------------------------------------------------
-    def ready(self, step: dict) -> bool:
-        key, prev, box = int(step["key"]), int(step["prev_key"]), self.inbox
-        if not box.has(P.OBSERVATION, key):
-            return False
-        if step["t"] == 0 or not self.open:
-            return True
-        if not box.has(P.ACTION, prev):
-            return False
-        if not self.spec.hierarchical:
-            return True
-        critic = box.get(P.CRITIC, key)
-        if critic is None:
-            return False
-        if self.option_next and not (box.has(P.SUBGOAL, prev) and box.has(P.SUBGOAL_IMAGES, prev)):
-            return False
-        return not (self.spec.meta_input == "state" and critic["option_done"]) or box.has(P.SUB_STATE, prev)
-
-    def process(self, step: dict) -> list:
-        key, obs = int(step["key"]), self.inbox.get(P.OBSERVATION, int(step["key"]))
-        if step["t"] == 0:
-            if self.open:
-                self.lost_episodes += 1
-            self._begin(key, obs)
-        elif not self.open:
-            self.skipped += 1
-        else:
-            self._transition(step, obs)
-        return []
-
-    def _begin(self, key: int, obs: np.ndarray) -> None:
-        self.open = True
-        self.option_next = True  # an option starts at the episode's first step
-        self.recorder = EpisodeRecorder(*self.recorder_args)
-        self.prev_obs = obs
-        self.subgoal_image = np.zeros_like(obs)
-        self.option_extrinsic = 0.0
-        self.option_steps = 0
-        self.last_sub_state = np.zeros(lstm_state_size, np.float32)
-
-    def _transition(self, step: dict, obs: np.ndarray) -> None:
-        box, key, prev = self.inbox, int(step["key"]), int(step["prev_key"])
-        action = int(box.get(P.ACTION, prev)["action"])
-        env = step_batch(step, obs)
-        if self.spec.hierarchical:
-            critic, new_option = box.get(P.CRITIC, key), self.option_next
-            if new_option:  # the meta-controller publishes a subgoal when an option starts
-                self.option_subgoal = int(box.get(P.SUBGOAL, prev)["subgoal"])
-            subgoal = self.option_subgoal
-            intrinsic, reached, option_done = critic["intrinsic"], bool(critic["reached"]), bool(critic["option_done"])
-            self.option_next = option_done
-            sub_terminal = reached or bool(step["terminated"])
-        else:
-            subgoal, new_option = -1, step["t"] == 1
-            intrinsic, option_done, sub_terminal = 0.0, done(step), bool(step["terminated"])
-        meta_input = None
-        if new_option:
-            if self.spec.hierarchical:
-                images = box.get(P.SUBGOAL_IMAGES, prev)
-                self.subgoal_image = images[subgoal * OBS_SIZE:(subgoal + 1) * OBS_SIZE]
-                meta_input = (self.last_sub_state if self.spec.meta_input == "state" else self.prev_obs)[None].copy()
-            self.option_extrinsic, self.option_steps = 0.0, 0
-        self.option_extrinsic += float(step["extrinsic"])
-        self.option_steps += 1
-        meta_next = None
-        if self.spec.hierarchical and option_done:
-            if self.spec.meta_input == "state":
-                self.last_sub_state = box.get(P.SUB_STATE, prev)
-                meta_next = self.last_sub_state[None].copy()
-            else:
-                meta_next = obs[None].copy()
-        record = StepRecord(
-            obs=self.prev_obs[None], new_option=np.array([new_option]), meta_input=meta_input,
-            subgoal=np.array([subgoal]), subgoal_image=self.subgoal_image[None], action=np.array([action]),
-            env=env, intrinsic=np.array([intrinsic], np.float32), option_done=np.array([option_done]),
-            sub_terminal=np.array([sub_terminal]), option_extrinsic=np.array([self.option_extrinsic], np.float32),
-            option_steps=np.array([self.option_steps]), meta_next_input=meta_next)
-        self.transitions += 1
-        if self.log is not None:
-            self._log(step, action, subgoal, intrinsic, obs)
-        for _, sub_ep, meta_ep, stats in self.recorder.add(record):
-            self.episodes.put((self.ns or "/", sub_ep, meta_ep, stats))
-            self.open = False
-        self.prev_obs = obs
-
-    def _log(self, step: dict, action: int, subgoal: int, intrinsic: float, obs: np.ndarray) -> None:
-        row = {"group": self.ns or "/", **{f: step[f] for f in ("key", "prev_key", "episode", "t", "extrinsic",
-                                                                "classical", "terminated", "truncated")},
-               "action": action, "subgoal": subgoal, "intrinsic": intrinsic,
-               "obs": obs_digest(self.prev_obs), "next_obs": obs_digest(obs)}
-        self.log.write(json.dumps(row) + "\n")
+        for name, (type_name, handler) in self.inputs().items():
+            node.create_subscription(type_name, self.topic(name), handler, P.STEP_QOS)
+        self.credit_pub = node.create_publisher(P.FLOATS, self.topic(P.CREDIT), LATCHED_QOS)
 
     def publish_credit(self, window: int, owed_ok: bool, eps: tuple[float, float], epoch: float,
                        force: bool = False) -> None:
@@ -210,10 +64,6 @@ class GroupAssembler(StepFollower):
             return
         self.last_credit = values
         self.credit_pub.publish(P.make_record(self.node, P.FLOATS, P.CREDIT_FIELDS, [*values, self.last_key, epoch]))
-
-    def stats(self) -> dict:
-        return {"env_steps": self.env_steps_seen, "transitions": self.transitions, "skipped": self.skipped,
-                "lost_episodes": self.lost_episodes, "rejected": self.rejected}
 
 
 class LearnerNode:

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from hdrqn_ros.envs.gridworld import AGENT, FREE, GOAL0, GOAL_NAMES, PALETTE, WALL
-from hdrqn_ros.middleware.messages import as_array
+from hdrqn_ros.middleware.arrays import as_array
 from hdrqn_ros.yaml_files import read_mapping
 
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hdrqn_ros.middleware.messages import as_array
+from hdrqn_ros.middleware.arrays import as_array
 from hdrqn_ros.middleware.port import QoS
 
 # topics, relative to the group's namespace unless absolute

@@ -35,6 +35,8 @@ setup(
         "cyclonedds>=0.10.5",
         "rosbags>=0.10",
         "safetensors>=0.4",
+        "mcap>=1.1",
+        "mcap-ros2-support>=0.5",
     ],
     extras_require={"test": ["pytest>=8", "hypothesis>=6.100"]},
     zip_safe=True,

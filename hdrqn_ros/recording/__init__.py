@@ -1,0 +1,1 @@
+"""Recording of hDRQN runs into rosbag2 (MCAP) bags, without ROS."""

@@ -93,6 +93,17 @@ def _add_plot(sub) -> None:
                    help="name a run's curve (default: its algorithm)")
 
 
+def _add_bag(sub) -> None:
+    p = sub.add_parser("bag", help="inspect and repair rosbag2 (MCAP) bags",
+                       description="rosbag2 bags with MCAP storage (what ros2 bag record -s mcap writes).")
+    bag_sub = p.add_subparsers(dest="bag_command", metavar="BAG_COMMAND", required=True)
+    info = bag_sub.add_parser("info", help="topics, types, message counts, time span and files of a bag")
+    info.add_argument("bag", metavar="BAG_DIR")
+    info.add_argument("--json", action="store_true", help="print JSON")
+    repair = bag_sub.add_parser("repair", help="recover a bag whose recorder was killed (complete chunks are kept)")
+    repair.add_argument("bag", metavar="BAG_DIR")
+
+
 def _add_envs(sub) -> None:
     sub.add_parser("envs", help="list the environment ids and their default options")
 
@@ -103,7 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Hierarchical deep recurrent Q-learning (hDRQN) on partially observable hierarchical tasks.")
     parser.add_argument("--version", action="version", version=f"hdrqn_ros {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for add in (_add_train, _add_up, _add_eval, _add_plot, _add_envs):
+    for add in (_add_train, _add_up, _add_eval, _add_plot, _add_bag, _add_envs):
         add(sub)
     return parser
 
@@ -228,6 +239,30 @@ def cmd_plot(args) -> int:
     return 0
 
 
+def cmd_bag(args) -> int:
+    from hdrqn_ros.recording.bag import BagError, bag_summary, repair_bag
+
+    try:
+        if args.bag_command == "repair":
+            report = repair_bag(args.bag)
+            print(f"{report.path}: {report.message_count} messages in {len(report.files)} file(s); repaired "
+                  f"{len(report.repaired)} file(s), recovering {report.messages_recovered} messages and dropping "
+                  f"{report.bytes_dropped} bytes of incomplete data")
+            return 0
+        summary = bag_summary(args.bag)
+    except BagError as exc:
+        raise UsageError(str(exc)) from None
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    print(f"bag:      {summary['path']}\nfiles:    {len(summary['files'])}\nmessages: {summary['message_count']}\n"
+          f"duration: {summary['duration_s']:.3f} s")
+    width = max((len(t) for t in summary["topics"]), default=5)
+    for topic, entry in sorted(summary["topics"].items()):
+        print(f"  {topic:{width}s}  {entry['count']:8d}  {entry['type']}")
+    return 0
+
+
 def cmd_envs(args) -> int:
     import gymnasium as gym
 
@@ -246,7 +281,7 @@ def _int(text: str, flag: str) -> int:
         raise UsageError(f"{flag} must be an integer or 'full', got {text!r}") from None
 
 
-COMMANDS = {"train": cmd_train, "up": cmd_up, "eval": cmd_eval, "plot": cmd_plot, "envs": cmd_envs}
+COMMANDS = {"train": cmd_train, "up": cmd_up, "eval": cmd_eval, "plot": cmd_plot, "bag": cmd_bag, "envs": cmd_envs}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,5 +1,6 @@
 """rosbag2 MCAP bag layer: write/read round trip, splitting, crash repair, bad input."""
 import errno
+import json
 import os
 import shutil
 import subprocess
@@ -239,3 +240,27 @@ def test_disk_full_is_a_bag_error_and_closed_files_survive(tmp_path, monkeypatch
     got = list(read_messages(tmp_path / "d"))
     assert len(got) >= sum(f["message_count"] for f in metadata(tmp_path / "d")["files"][:1])
     assert got == stream[:len(got)]
+
+
+def test_cli_bag_info_and_repair(tmp_path):
+    """``hdrqn bag info`` / ``repair`` as a user runs them (a real subprocess), exit codes included."""
+    store = get_typestore(Stores.ROS2_JAZZY)
+    bag = tmp_path / "run_bag"
+    with BagWriter(bag) as w:
+        w.add_topic("/env_step", "std_msgs/msg/Float64MultiArray")
+        for i in range(5):
+            msg = store.types["std_msgs/msg/Float64MultiArray"](
+                layout=store.types["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0),
+                data=np.arange(3, dtype=np.float64) + i)
+            w.write("/env_step", 1_000 + i, bytes(store.serialize_cdr(msg, "std_msgs/msg/Float64MultiArray")))
+
+    def hdrqn(*args):
+        return subprocess.run([sys.executable, "-m", "hdrqn_ros.cli", "bag", *args], capture_output=True, text=True)
+
+    info = hdrqn("info", str(bag))
+    assert info.returncode == 0 and "/env_step" in info.stdout and "5" in info.stdout
+    assert json.loads(hdrqn("info", "--json", str(bag)).stdout)["message_count"] == 5
+    repaired = hdrqn("repair", str(bag))
+    assert repaired.returncode == 0 and "5 messages" in repaired.stdout
+    bad = hdrqn("info", str(tmp_path / "nope"))
+    assert bad.returncode == 2 and "nope" in bad.stderr and "Traceback" not in bad.stderr

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import os
 
-from hdrqn_ros.middleware.port import (DEFAULT_QOS, LATCHED_QOS, SENSOR_QOS, Middleware, Node, ParameterError, QoS,
+from hdrqn_ros.middleware.port import (DEFAULT_QOS, LATCHED_QOS, Middleware, Node, ParameterError, QoS,
                                        RosArgsError)
 
 BACKEND_ENV = "HDRQN_MIDDLEWARE"
@@ -27,5 +27,5 @@ def open_middleware(argv: list[str] | None = None, backend: str | None = None) -
     return CycloneMiddleware(argv)
 
 
-__all__ = ["open_middleware", "Middleware", "Node", "QoS", "DEFAULT_QOS", "LATCHED_QOS", "SENSOR_QOS",
+__all__ = ["open_middleware", "Middleware", "Node", "QoS", "DEFAULT_QOS", "LATCHED_QOS",
            "ParameterError", "RosArgsError", "BACKEND_ENV"]

@@ -122,9 +122,6 @@ class _Timer:
         self.period, self.callback = period_s, callback
         self.next = time.monotonic() + period_s
 
-    def cancel(self) -> None:
-        self.next = float("inf")
-
 
 class CycloneNode(Node):
     """A node on the process's DDS participant (ROS 2 nodes share their context's participant)."""

@@ -185,26 +185,3 @@ def _value_to_rosbags(value, desc, store):
     if base is not None:
         return as_array(value, _DTYPE[base])
     return [_value_to_rosbags(v, sub, store) for v in value]
-
-
-def from_rosbags(obj: Any, type_name: str) -> Any:
-    """A Cyclone message with the values of a ``rosbags`` message object."""
-    store = typestore()
-    _, fields = store.fielddefs[type_name]
-    values = {}
-    for fname, desc in fields:
-        values[fname] = _value_from_rosbags(getattr(obj, fname), desc)
-    return message_class(type_name)(**values)
-
-
-def _value_from_rosbags(value, desc):
-    kind, rest = desc
-    if kind == Nodetype.BASE:
-        return int(value) if rest[0] == "bool" else value
-    if kind == Nodetype.NAME:
-        return from_rosbags(value, rest)
-    sub, _ = rest
-    if sub[0] == Nodetype.BASE and sub[1][0] in _DTYPE:
-        out = np.asarray(value, dtype=_DTYPE[sub[1][0]])
-        return out if kind == Nodetype.SEQUENCE else out.tolist()
-    return [_value_from_rosbags(v, sub) for v in value]

@@ -33,8 +33,6 @@ DEFAULT_QOS = QoS()
 """ROS 2's default (``rclpy.qos.qos_profile_default``): reliable, volatile, keep-last 10."""
 LATCHED_QOS = QoS(depth=1, transient_local=True)
 """Reliable, transient-local, keep-last 1: late joiners get the last sample (weights, status)."""
-SENSOR_QOS = QoS(depth=5, reliable=False)
-"""``qos_profile_sensor_data``: best effort, volatile, keep-last 5 (costmaps from Nav2)."""
 
 
 class Publisher(Protocol):

@@ -19,7 +19,6 @@ from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.nodes import protocol as P
 from hdrqn_ros.nodes.common import obs_digest
-from hdrqn_ros.nodes.critic import step_batch
 from hdrqn_ros.nodes.follower import StepFollower, done
 from hdrqn_ros.training.episodes import EpisodeRecorder
 from hdrqn_ros.training.rollout import StepRecord
@@ -128,7 +127,7 @@ class TransitionAssembler(StepFollower):
     def _transition(self, step: dict, obs: np.ndarray) -> None:
         box, key, prev = self.inbox, int(step["key"]), int(step["prev_key"])
         action = int(box.get(P.ACTION, prev)["action"])
-        env = step_batch(step, obs)
+        env = P.step_batch(step, obs)
         if self.spec.hierarchical:
             critic, new_option = box.get(P.CRITIC, key), self.option_next
             if new_option:  # the meta-controller publishes a subgoal when an option starts

@@ -18,6 +18,7 @@ from hdrqn_ros.middleware import LATCHED_QOS, Middleware, Node, ParameterError, 
 from hdrqn_ros.nodes import protocol as P
 from hdrqn_ros.nodes.nav import NavConfigError
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint
+from hdrqn_ros.training.rollout import epsilon_greedy
 
 ENV_DEFAULTS = {"algo": "hdrqn-v2", "env": "hdrqn/GridWorld-2Goals-v0", "view": "5", "seed": 0}
 """Parameters every training-graph node declares (the launch files set them once for all
@@ -103,8 +104,6 @@ class ActingNetwork:
 
     def choose(self, x: np.ndarray, state, invalid: int = -1):
         """One decision for input ``x`` (one row, no batch axis): (index, new LSTM state)."""
-        from hdrqn_ros.training.rollout import epsilon_greedy
-
         with torch.inference_mode():
             q, state = self.net.act(torch.tensor(x[None]), state)  # a copy: x may be read-only
         inv = None if invalid < 0 else np.array([invalid])

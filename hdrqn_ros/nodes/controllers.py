@@ -57,6 +57,11 @@ class _Controller(StepFollower):
         if got is not None:
             self.put(topic, got[0], got[1])
 
+    def option_starts(self, key: int) -> bool | None:
+        """Whether the critic ended the option at ``key`` (a new one starts); ``None``: not heard yet."""
+        critic = self.inbox.get(P.CRITIC, key)
+        return None if critic is None else bool(critic["option_done"])
+
     def reset(self) -> None:
         super().reset()
         self.state = self.net.initial_state()
@@ -152,13 +157,10 @@ class SubControllerNode(_Controller):
             return False
         if not self.spec.hierarchical:
             return True
-        critic = self.inbox.get(P.CRITIC, key)
-        if critic is None:
-            return False
-        if not critic["option_done"]:
-            return True
-        subgoal = self.inbox.get(P.SUBGOAL, key)
-        return subgoal is not None and self.inbox.has(P.SUBGOAL_IMAGES, key)
+        starts = self.option_starts(key)
+        if not starts:
+            return starts is not None
+        return self.inbox.has(P.SUBGOAL, key) and self.inbox.has(P.SUBGOAL_IMAGES, key)
 
     def process(self, step: dict) -> list:
         if done(step):
@@ -169,7 +171,7 @@ class SubControllerNode(_Controller):
             self.state = self.net.initial_state()
         x = obs
         if self.spec.hierarchical:
-            if self.inbox.get(P.CRITIC, key)["option_done"]:
+            if self.option_starts(key):
                 self.state = self.net.initial_state()  # h^S <- 0 for every new option (Algorithm 1)
                 g = int(self.inbox.get(P.SUBGOAL, key)["subgoal"])
                 self.subgoal_image = self.inbox.get(P.SUBGOAL_IMAGES, key)[g * OBS_SIZE:(g + 1) * OBS_SIZE]
@@ -224,11 +226,9 @@ class MetaControllerNode(_Controller):
         key, prev = int(step["key"]), int(step["prev_key"])
         if done(step):
             return True
-        critic = self.inbox.get(P.CRITIC, key)
-        if critic is None:
-            return False
-        if not critic["option_done"]:
-            return True
+        starts = self.option_starts(key)
+        if not starts:
+            return starts is not None
         if self.spec.meta_input == "image":
             return self.inbox.has(P.OBSERVATION, key)
         return step["t"] == 0 or self.inbox.has(P.SUB_STATE, prev)
@@ -236,7 +236,7 @@ class MetaControllerNode(_Controller):
     def process(self, step: dict) -> list:
         """A ``subgoal`` (and ``goal_pose``) when an option starts; nothing on other steps."""
         key = int(step["key"])
-        if done(step) or not self.inbox.get(P.CRITIC, key)["option_done"]:
+        if done(step) or not self.option_starts(key):
             return []
         if step["t"] == 0:
             self.state = self.net.initial_state()  # h^M <- 0 for every episode

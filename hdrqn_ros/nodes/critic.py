@@ -13,25 +13,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from hdrqn_ros.envs.domain import StepBatch
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.middleware import Middleware
 from hdrqn_ros.nodes import protocol as P
 from hdrqn_ros.nodes.common import ENV_DEFAULTS, env_kwargs, run_node
 from hdrqn_ros.nodes.follower import StepFollower, done
-
-
-def step_batch(step: dict, obs: np.ndarray | None = None) -> StepBatch:
-    """A one-row :class:`StepBatch` from an ``env_step`` record (``obs``: (44, 44, 3) or none)."""
-    def col(name, dtype):
-        return np.array([step[name]], dtype)
-
-    return StepBatch(obs=np.zeros((1, 0, 0, 3), np.uint8) if obs is None else obs[None],
-                     classical=col("classical", np.float32), extrinsic=col("extrinsic", np.float32),
-                     terminated=col("terminated", bool), truncated=col("truncated", bool),
-                     agent_pos=np.zeros((1, 2), np.int32), at_subgoal=col("at_subgoal", np.int32),
-                     collected=col("collected", bool), hit_obstacle=col("hit_obstacle", bool),
-                     life_lost=col("life_lost", bool), success=col("success", bool))
 
 
 class CriticNode(StepFollower):
@@ -66,7 +52,7 @@ class CriticNode(StepFollower):
         elif self.option_subgoal < 0:  # (re)started mid-option: end it where a new one can start
             values = [key, 0.0, 0.0, float(step["decision_point"] or done(step)), -1.0]
         else:
-            result = self.critic.evaluate(step_batch(step), np.array([self.option_subgoal]))
+            result = self.critic.evaluate(P.step_batch(step), np.array([self.option_subgoal]))
             values = [key, result.intrinsic[0], result.reached[0], result.option_done[0], self.option_subgoal]
         if values[3] and not done(step):
             self.choice_at, self.option_subgoal = key, -1

@@ -17,11 +17,11 @@ sub-controller handing its LSTM state (``sub_state``) to it at such steps.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from hdrqn_ros.envs.domain import StepBatch
 from hdrqn_ros.middleware.arrays import as_array
 from hdrqn_ros.middleware.port import QoS
 
@@ -196,10 +196,18 @@ def check_index(value: float, n: int, what: str, allow_none: bool = False) -> in
     return int(value)
 
 
-def finite(value: float, what: str) -> float:
-    if not math.isfinite(value):
-        raise ProtocolError(f"{what} is not finite: {value!r}")
-    return float(value)
+
+def step_batch(step: dict, obs: np.ndarray | None = None) -> StepBatch:
+    """A one-row :class:`StepBatch` from an ``env_step`` record (``obs``: (44, 44, 3) or none)."""
+    def col(name, dtype):
+        return np.array([step[name]], dtype)
+
+    return StepBatch(obs=np.zeros((1, 0, 0, 3), np.uint8) if obs is None else obs[None],
+                     classical=col("classical", np.float32), extrinsic=col("extrinsic", np.float32),
+                     terminated=col("terminated", bool), truncated=col("truncated", bool),
+                     agent_pos=np.zeros((1, 2), np.int32), at_subgoal=col("at_subgoal", np.int32),
+                     collected=col("collected", bool), hit_obstacle=col("hit_obstacle", bool),
+                     life_lost=col("life_lost", bool), success=col("success", bool))
 
 
 def as_bytes(data) -> bytes:

@@ -23,7 +23,7 @@ from pathlib import Path
 from hdrqn_ros.config import build_config
 from hdrqn_ros.graph import graph_processes, write_params
 from hdrqn_ros.middleware.cyclone import CycloneMiddleware
-from hdrqn_ros.nodes import protocol as P
+from hdrqn_ros.protocol import wire as P
 from hdrqn_ros.supervisor import ProcessSpec, Supervisor
 from hdrqn_ros.training.trainer import Trainer
 

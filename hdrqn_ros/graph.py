@@ -15,15 +15,12 @@ import yaml
 
 from hdrqn_ros.agents.algorithms import ALGO_SPECS
 from hdrqn_ros.config import TrainConfig
+from hdrqn_ros.protocol.wire import group_namespaces
 from hdrqn_ros.supervisor import ProcessSpec
 
 NODE_MODULES = {"environment": "hdrqn_ros.nodes.environment", "critic": "hdrqn_ros.nodes.critic",
                 "meta_controller": "hdrqn_ros.nodes.controllers:main_meta",
                 "sub_controller": "hdrqn_ros.nodes.controllers:main_sub", "learner": "hdrqn_ros.nodes.learner"}
-
-
-def group_namespaces(groups: int) -> list[str]:
-    return ["/"] if groups == 1 else [f"/group{i}" for i in range(groups)]
 
 
 def view_parameter(cfg: TrainConfig) -> str:

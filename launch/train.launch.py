@@ -29,7 +29,7 @@ from launch.event_handlers import OnProcessExit
 from launch.events import Shutdown
 from launch_ros.actions import Node
 
-from hdrqn_ros.graph import group_namespaces
+from hdrqn_ros.protocol.wire import group_namespaces
 from hdrqn_ros.launch_support import (ALGOS, DEFAULT_ALGO, HIERARCHICAL_ALGOS, PACKAGE, SHARED_ARGS, arg, bool_arg,
                                       int_arg, share_dir, shared_file_parameters)
 

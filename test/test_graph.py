@@ -17,8 +17,8 @@ from hdrqn_ros.graph import graph_processes, write_params
 from hdrqn_ros.middleware.cyclone import CycloneMiddleware, _dds_qos
 from hdrqn_ros.middleware.messages import typestore, to_rosbags
 from hdrqn_ros.middleware.port import LATCHED_QOS, QoS
-from hdrqn_ros.nodes import protocol as P
-from hdrqn_ros.nodes.common import obs_digest
+from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol.wire import obs_digest
 from hdrqn_ros.supervisor import ProcessSpec, Supervisor
 
 ENV = "hdrqn/GridWorld-2Goals-v0"

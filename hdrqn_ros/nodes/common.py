@@ -1,7 +1,6 @@
 """What every node executable shares: start-up, parameters, the spin loop, clean exit."""
 from __future__ import annotations
 
-import hashlib
 import signal
 import sys
 import threading
@@ -15,8 +14,9 @@ from hdrqn_ros.agents.weights import WeightsError, load_weights
 from hdrqn_ros.config import ConfigError
 from hdrqn_ros.envs.registration import GRID_IDS, MONTEZUMA_IDS, make_batch
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware, Node, ParameterError, RosArgsError, open_middleware
-from hdrqn_ros.nodes import protocol as P
+from hdrqn_ros.protocol import wire as P
 from hdrqn_ros.nodes.nav import NavConfigError
+from hdrqn_ros.recording.bag import BagError
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint
 from hdrqn_ros.training.rollout import epsilon_greedy
 
@@ -51,11 +51,6 @@ def domain_sizes(env_id: str, view: str) -> tuple[int, int]:
     """(num_actions, num_subgoals) of the domain."""
     probe = make_batch(env_id, 1, **env_kwargs(env_id, view))
     return probe.num_actions, probe.num_subgoals
-
-
-def obs_digest(obs: np.ndarray) -> str:
-    """A short digest of an observation's bytes (step and transition logs)."""
-    return hashlib.blake2b(np.ascontiguousarray(obs).tobytes(), digest_size=8).hexdigest()
 
 
 class ActingNetwork:
@@ -118,7 +113,7 @@ def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None) 
     SIGTERM, then clean up (the object's ``close()`` first, then the middleware).
 
     SIGINT (Ctrl-C, what ``ros2 launch`` sends) and SIGTERM are a normal stop: exit code
-    the object's ``exit_code`` (0). 2 for bad parameters, arguments or checkpoints."""
+    the object's ``exit_code`` (0). 2 for bad parameters, arguments, checkpoints or bags."""
     argv = list(sys.argv if argv is None else argv)
     stopped = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stopped.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -131,7 +126,7 @@ def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None) 
     except KeyboardInterrupt:
         return 130
     except (NodeConfigError, NavConfigError, ConfigError, ParameterError, RosArgsError, CheckpointError,
-            FileNotFoundError) as exc:
+            BagError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     finally:

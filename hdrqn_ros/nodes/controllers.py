@@ -18,9 +18,9 @@ from hdrqn_ros.agents.networks import lstm_state_size
 from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
 from hdrqn_ros.nodes import nav
-from hdrqn_ros.nodes import protocol as P
+from hdrqn_ros.protocol import wire as P
 from hdrqn_ros.nodes.common import ENV_DEFAULTS, ActingNetwork, NodeConfigError, run_node
-from hdrqn_ros.nodes.follower import StepFollower, done
+from hdrqn_ros.protocol.follower import StepFollower, done
 
 CONTROLLER_PARAMETERS = {**ENV_DEFAULTS, "epsilon": -1.0, "checkpoint": "", "meta_state": "c"}
 """``epsilon`` < 0: explore with the learner's schedule (1.0 until it is heard from);

@@ -15,9 +15,9 @@ import numpy as np
 
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.middleware import Middleware
-from hdrqn_ros.nodes import protocol as P
+from hdrqn_ros.protocol import wire as P
 from hdrqn_ros.nodes.common import ENV_DEFAULTS, env_kwargs, run_node
-from hdrqn_ros.nodes.follower import StepFollower, done
+from hdrqn_ros.protocol.follower import StepFollower, done
 
 
 class CriticNode(StepFollower):

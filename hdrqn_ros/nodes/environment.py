@@ -17,8 +17,8 @@ import numpy as np
 from hdrqn_ros.envs.domain import NO_SUBGOAL
 from hdrqn_ros.envs.registration import MONTEZUMA_IDS, make_batch
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
-from hdrqn_ros.nodes import protocol as P
-from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, env_kwargs, obs_digest, run_node
+from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, env_kwargs, run_node
 
 PARAMETERS = {**ENV_DEFAULTS, "step_period": 0.01, "frame_id": "hdrqn_map", "action_timeout": 5.0,
               "wait_for_learner": False, "max_episodes": 0, "step_log": "", "publish_clock": True}
@@ -114,7 +114,7 @@ class EnvironmentNode:
             return
         action, self.pending_action = self.pending_action, None
         prev_key = self.key
-        self.obs_digest_before = obs_digest(self.obs) if self.step_log is not None else ""
+        self.obs_digest_before = P.obs_digest(self.obs) if self.step_log is not None else ""
         step = self.batch.step(np.array([action]))
         self.steps += 1
         self.t += 1
@@ -129,7 +129,7 @@ class EnvironmentNode:
                             "decision_point": bool(decision and not step.done[0])}
         self._new_key()
         if self.step_log is not None:
-            self.step_log.write(json.dumps({**self.step_record, "key": self.key, "next_obs": obs_digest(self.obs),
+            self.step_log.write(json.dumps({**self.step_record, "key": self.key, "next_obs": P.obs_digest(self.obs),
                                             "obs": self.obs_digest_before}) + "\n")
         self._publish()
         if step.done[0]:

@@ -25,8 +25,8 @@ import numpy as np
 from hdrqn_ros.agents.weights import encode_weights
 from hdrqn_ros.config import build_config, parse_set
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
-from hdrqn_ros.nodes import protocol as P
-from hdrqn_ros.nodes.assembly import TransitionAssembler
+from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol.assembly import TransitionAssembler
 from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, check_algo, env_kwargs, run_node
 from hdrqn_ros.training.learner import EVAL_SEED_OFFSET, Learner, evaluate
 

@@ -59,10 +59,11 @@ class _FileTarget:
 
 
 class _McapFile(McapWriter):
-    """rosbags MCAP storage for one named file; flushes every finished chunk (kill -9 safe)."""
+    """rosbags MCAP storage for one named file; flushes every finished chunk (kill -9 safe).
+    ``compress``: zstd-compressed chunks (like ``ros2 bag record --storage-preset-profile zstd_fast``)."""
 
-    def __init__(self, file: Path):
-        super().__init__(_FileTarget(file), CompressionMode.NONE)
+    def __init__(self, file: Path, compress: bool = False):
+        super().__init__(_FileTarget(file), CompressionMode.STORAGE if compress else CompressionMode.NONE)
         self.qos_texts: dict[int, str] = {}  # channel id -> offered_qos_profiles YAML
 
     def add_connection(self, connection: Connection, offered_qos_profiles: str) -> None:
@@ -87,7 +88,7 @@ def _topic_entry(name: str, type_name: str, fmt: str, qos: list[Qos], count: int
                                "type_description_hash": digest}, "message_count": count}
 
 
-def _metadata(files: list[dict], topics: list[dict]) -> dict:
+def _metadata(files: list[dict], topics: list[dict], custom_data: dict[str, str] | None = None) -> dict:
     """``rosbag2_bagfile_information`` (version 9, storage mcap) for these files/topics."""
     full = [(f["starting_time"]["nanoseconds_since_epoch"], f["duration"]["nanoseconds"])
             for f in files if f["message_count"]]
@@ -98,7 +99,8 @@ def _metadata(files: list[dict], topics: list[dict]) -> dict:
             "starting_time": {"nanoseconds_since_epoch": start},
             "message_count": sum(f["message_count"] for f in files),
             "topics_with_message_count": topics, "compression_format": "",
-            "compression_mode": "", "files": files, "custom_data": {}, "ros_distro": "jazzy"}
+            "compression_mode": "", "files": files, "custom_data": dict(custom_data or {}),
+            "ros_distro": "jazzy"}
 
 
 def _yaml(obj) -> str:
@@ -120,16 +122,19 @@ class BagWriter:
 
     A file is finished (a standalone MCAP with all schemas/channels) and metadata.yaml
     rewritten once the file holds ``split_bytes`` bytes, or before a message would make it
-    span more than ``split_seconds`` s of message time (0: no time split).
+    span more than ``split_seconds`` s of message time (0: no time split). ``compress``:
+    zstd chunks. ``custom_data``: string pairs kept in metadata.yaml's ``custom_data``.
     """
 
-    def __init__(self, path, *, split_bytes: int = 256 * 2**20, split_seconds: float = 0.0):
+    def __init__(self, path, *, split_bytes: int = 256 * 2**20, split_seconds: float = 0.0,
+                 compress: bool = False, custom_data: dict[str, str] | None = None):
         self.path = Path(path)
         if split_bytes <= 0 or split_seconds < 0:
             raise ValueError("split_bytes must be > 0 and split_seconds >= 0")
         if os.path.lexists(self.path):
             raise BagError(f"{self.path} already exists; refusing to overwrite it")
         self._split_bytes, self._split_ns = split_bytes, round(split_seconds * 1e9)
+        self._compress, self.custom_data = compress, {str(k): str(v) for k, v in (custom_data or {}).items()}
         self._w = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
         self._files: list[dict] = []  # metadata entries of finished files
         self._counts: dict[int, int] = {}  # connection id -> messages in finished files
@@ -137,8 +142,8 @@ class BagWriter:
         self._closed = False
         with self._guard("create"):
             self.path.mkdir(mode=0o755, parents=True)
-            self._w.storage = _McapFile(self.path / f"{self.path.name}_0.mcap")
-            _write_metadata(self.path, _metadata([], []))
+            self._w.storage = _McapFile(self.path / f"{self.path.name}_0.mcap", compress)
+            _write_metadata(self.path, _metadata([], [], self.custom_data))
 
     @contextmanager
     def _guard(self, what: str):
@@ -199,12 +204,12 @@ class BagWriter:
         """Finish ``file`` and rewrite metadata.yaml listing all finished files."""
         info = _file_info(file.path.name, file.message_start_time, file.message_end_time,
                           sum(file.channel_stats.values()))
-        file.close(9, _yaml(_metadata([info], self._topic_entries(file.channel_stats))).strip())
+        file.close(9, _yaml(_metadata([info], self._topic_entries(file.channel_stats), self.custom_data)).strip())
         self._w.storage = None
         self._files.append(info)
         for cid, count in file.channel_stats.items():
             self._counts[cid] += count
-        _write_metadata(self.path, _metadata(self._files, self._topic_entries(self._counts)))
+        _write_metadata(self.path, _metadata(self._files, self._topic_entries(self._counts), self.custom_data))
 
     def _topic_entries(self, counts: dict[int, int]) -> list[dict]:
         return [_topic_entry(c.topic, c.msgtype, c.ext.serialization_format,
@@ -215,7 +220,7 @@ class BagWriter:
         with self._guard("split"):
             self._finish(old)
             name = f"{self.path.name}_{len(self._files)}.mcap"
-            new = self._w.storage = _McapFile(self.path / name)
+            new = self._w.storage = _McapFile(self.path / name, self._compress)
             for conn in self._w.connections:
                 if all(s.name != conn.msgtype for s in new.schemas):
                     new.add_msgtype(conn)
@@ -417,6 +422,21 @@ def _summary(file: Path):
     return summary if summary is not None and summary.statistics is not None else None
 
 
+def _custom_data(bag: Path) -> dict[str, str]:
+    """``custom_data`` of a bag's metadata.yaml ({} when it is missing or unreadable)."""
+    try:
+        data = YAML(typ="safe").load((bag / "metadata.yaml").read_text("utf8"))
+        custom = data["rosbag2_bagfile_information"].get("custom_data") or {}
+        return {str(k): str(v) for k, v in custom.items()}
+    except Exception:  # no metadata.yaml yet, or damaged: custom data is optional
+        return {}
+
+
+def bag_custom_data(path) -> dict[str, str]:
+    """The ``custom_data`` string pairs of a valid bag's metadata.yaml."""
+    return _custom_data(_check(path)[0])
+
+
 def repair_bag(path) -> RepairReport:
     """Salvage complete chunks of damaged/unfinished data files; rewrite metadata.yaml."""
     bag, files = _data_files(path)
@@ -439,8 +459,41 @@ def repair_bag(path) -> RepairReport:
                        ch.metadata.get("offered_qos_profiles", ""))
                 topics[key] = topics.get(key, 0) + stats.channel_message_counts.get(cid, 0)
         _write_metadata(bag, _metadata(infos, [_topic_entry(t, ty, fmt, parse_qos(q), n)
-                                               for (t, ty, fmt, q), n in topics.items()]))
+                                               for (t, ty, fmt, q), n in topics.items()], _custom_data(bag)))
     except OSError as err:
         raise BagError(f"cannot repair bag {bag}: {err.strerror or err}") from None
     return RepairReport(str(bag), [f.name for f in files], repaired, recovered,
                         sum(i["message_count"] for i in infos), dropped)
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    """A bag topic for playing it back: its type, message count and the QoS its
+    publishers offered when recorded (``None``: not recorded or a system default)."""
+
+    type_name: str
+    message_count: int
+    reliable: bool | None
+    transient_local: bool | None
+    depth: int | None
+
+
+def bag_topics(path) -> dict[str, TopicInfo]:
+    """Per topic of a validated bag: type, count and one QoS that suits all recorded offers
+    (as rosbag2's player adapts them: reliable / transient-local only if every offer was,
+    the deepest keep-last depth)."""
+    out: dict[str, TopicInfo] = {}
+    with open_bag(path) as reader:
+        for name, topic in sorted(reader.topics.items()):
+            offers = [q for c in topic.connections for q in c.ext.offered_qos_profiles]
+            rel = [q.reliability for q in offers
+                   if q.reliability in (QosReliability.RELIABLE, QosReliability.BEST_EFFORT)]
+            dur = [q.durability for q in offers
+                   if q.durability in (QosDurability.TRANSIENT_LOCAL, QosDurability.VOLATILE)]
+            depths = [q.depth for q in offers if q.history == QosHistory.KEEP_LAST and q.depth > 0]
+            out[name] = TopicInfo(
+                topic.msgtype, topic.msgcount,
+                all(r == QosReliability.RELIABLE for r in rel) if rel else None,
+                all(d == QosDurability.TRANSIENT_LOCAL for d in dur) if dur else None,
+                max(depths) if depths else None)
+    return out

@@ -51,13 +51,18 @@ class StepRecord:
     option_extrinsic: np.ndarray  # (N,) float32: extrinsic summed over the option (at option end)
     option_steps: np.ndarray  # (N,) int: option length (at option end)
     meta_next_input: np.ndarray | None  # (N, ...) meta input after the option (at option end)
+    all_subgoal_images: np.ndarray | None = None  # (N, S*44, 44, 3) every subgoal's image at the
+    # decision, stacked (rows of new_option); only from a rollout made with record_subgoal_images
 
 
 class Rollout:
     """Steps a batch of environments with an agent's (epsilon-greedy) hierarchical policy."""
 
-    def __init__(self, batch, agent: Agent, seed: int, meta_state: str = "c"):
+    def __init__(self, batch, agent: Agent, seed: int, meta_state: str = "c", record_subgoal_images: bool = False):
+        """``record_subgoal_images``: fill :attr:`StepRecord.all_subgoal_images` (for recording)."""
         self.batch = batch
+        self.record_subgoal_images = record_subgoal_images
+        self._all_images = None
         self.agent = agent
         self.n = batch.num_envs
         self.critic = batch.critic()
@@ -107,6 +112,9 @@ class Rollout:
                 t[torch.as_tensor(idx, device=t.device)] = new
         self.subgoal[idx] = epsilon_greedy(q, eps_meta, rng, invalid=self.place[idx])
         self.subgoal_image[idx] = self.batch.subgoal_images(self.subgoal)[idx]
+        if self.record_subgoal_images:
+            self._all_images = np.concatenate([self.batch.subgoal_images(np.full(self.n, g))
+                                               for g in range(self.batch.num_subgoals)], axis=1)
         self._zero_rows(self.sub_state, rows)  # line 13: h^S <- 0 for every new option
         self.option_extrinsic[idx] = 0.0
         self.option_steps[idx] = 0
@@ -118,6 +126,7 @@ class Rollout:
     def step(self, eps_sub: float, eps_meta: float, rng: np.random.Generator) -> StepRecord:
         """Advance every environment by one primitive action (lines 15-24)."""
         new_option = self.need_meta.copy()
+        self._all_images = None
         meta_input = self._choose_subgoals(eps_meta, rng)
         obs = self.obs
         q, self.sub_state = self.agent.sub.act(self.agent.sub_input(obs, self.subgoal_image), self.sub_state)
@@ -143,7 +152,7 @@ class Rollout:
                             subgoal_image=self.subgoal_image.copy(), action=action, env=env, intrinsic=intrinsic,
                             option_done=option_done, sub_terminal=sub_terminal,
                             option_extrinsic=self.option_extrinsic.copy(), option_steps=self.option_steps.copy(),
-                            meta_next_input=meta_next)
+                            meta_next_input=meta_next, all_subgoal_images=self._all_images)
         self.need_meta |= option_done
         self.place = env.at_subgoal.astype(np.int64)
         done = env.done

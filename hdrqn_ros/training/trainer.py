@@ -6,6 +6,7 @@ import json
 import time
 from collections import deque
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -13,18 +14,30 @@ from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.episodes import EpisodeRecorder, EpisodeStats
 from hdrqn_ros.training.learner import Learner, build_agent, evaluate
-from hdrqn_ros.training.rollout import Rollout
+from hdrqn_ros.training.rollout import Rollout, StepRecord
+
+
+class StepSink(Protocol):
+    """Where every :class:`StepRecord` goes as well (a recorder of transitions)."""
+
+    def write(self, record: StepRecord) -> None: ...
+
+    def close(self) -> None: ...
 
 
 class Trainer(Learner):
     """Trains ``cfg.algo`` on ``cfg.env`` in this process: a :class:`Learner` fed by a
-    :class:`Rollout` over ``cfg.num_envs`` vectorised environments."""
+    :class:`Rollout` over ``cfg.num_envs`` vectorised environments. ``sink``: also hand
+    every step to it (e.g. :class:`~hdrqn_ros.recording.transitions.TransitionRecorder`);
+    it is closed when :meth:`run` ends."""
 
     def __init__(self, cfg: TrainConfig, run_dir: str | Path, resume: bool = False, progress: bool = True,
-                 tensorboard: bool = True):
+                 tensorboard: bool = True, sink: StepSink | None = None):
         super().__init__(cfg, run_dir, resume=resume, progress=progress, tensorboard=tensorboard)
         self.batch = make_batch(cfg.env, cfg.num_envs, **cfg.env_kwargs)
-        self.rollout = Rollout(self.batch, self.agent, seed=cfg.seed + self.episodes, meta_state=cfg.meta_state)
+        self.sink = sink
+        self.rollout = Rollout(self.batch, self.agent, seed=cfg.seed + self.episodes, meta_state=cfg.meta_state,
+                               record_subgoal_images=sink is not None)
         self.recorder = EpisodeRecorder(cfg.num_envs, self.agent.meta is not None, cfg.sub.gamma, cfg.meta.gamma,
                                         cfg.smdp_discount)
 
@@ -36,6 +49,8 @@ class Trainer(Learner):
         cfg = self.cfg
         eps_sub, eps_meta = self.epsilons()
         record = self.rollout.step(eps_sub, eps_meta, self.rng)
+        if self.sink is not None:
+            self.sink.write(record)
         self.add_steps(cfg.num_envs)
         finished = []
         for _, sub_ep, meta_ep, stats in self.recorder.add(record):
@@ -86,6 +101,8 @@ class Trainer(Learner):
         finally:
             if bar is not None:
                 bar.close()
+            if self.sink is not None:
+                self.sink.close()
         self.save()
         final = None
         if cfg.eval_every:

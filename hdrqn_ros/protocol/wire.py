@@ -17,6 +17,7 @@ sub-controller handing its LSTM state (``sub_state``) to it at such steps.
 """
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -69,6 +70,16 @@ STEP_QOS = QoS(depth=1000)
 critical path (the meta-controller between option ends, the learner during an update)
 may fall behind by many steps without losing a sample; 1000 steps of observations are
 about 6 MB per reader."""
+
+def group_namespaces(groups: int) -> list[str]:
+    """The namespaces of ``groups`` environment groups: ``/`` for one, else ``/group<i>``."""
+    return ["/"] if groups == 1 else [f"/group{i}" for i in range(groups)]
+
+
+def group_topic(namespace: str, name: str) -> str:
+    """The absolute name of a group's topic ``name`` (``/`` + name for the root namespace)."""
+    return f"{namespace.rstrip('/')}/{name}"
+
 
 MAX_KEY = 2**53
 """Keys are exact in float64 up to 2^53 ns (104 days of simulated time)."""
@@ -229,3 +240,8 @@ def read_weights_version(msg) -> int:
     label = msg.layout.dim[0].label if len(msg.layout.dim) else ""
     _, _, n = label.partition("update=")
     return int(n) if n.isdigit() else 0
+
+
+def obs_digest(obs: np.ndarray) -> str:
+    """A short digest of an observation's bytes (step and transition logs)."""
+    return hashlib.blake2b(np.ascontiguousarray(obs).tobytes(), digest_size=8).hexdigest()

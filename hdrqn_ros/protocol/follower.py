@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections import OrderedDict, deque
 from typing import Any, Callable
 
-from hdrqn_ros.nodes import protocol as P
+from hdrqn_ros.protocol import wire as P
 
 DEFAULT_CAPACITY = 512
 """Keys kept per input topic, steps queued, and replies remembered (each bounded)."""

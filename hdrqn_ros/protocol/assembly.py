@@ -17,9 +17,8 @@ from hdrqn_ros.agents.algorithms import ALGO_SPECS
 from hdrqn_ros.agents.networks import lstm_state_size
 from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.envs.domain import OBS_SIZE
-from hdrqn_ros.nodes import protocol as P
-from hdrqn_ros.nodes.common import obs_digest
-from hdrqn_ros.nodes.follower import StepFollower, done
+from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol.follower import StepFollower, done
 from hdrqn_ros.training.episodes import EpisodeRecorder
 from hdrqn_ros.training.rollout import StepRecord
 
@@ -173,7 +172,7 @@ class TransitionAssembler(StepFollower):
         row = {"group": self.ns or "/", **{f: step[f] for f in ("key", "prev_key", "episode", "t", "extrinsic",
                                                                 "classical", "terminated", "truncated")},
                "action": action, "subgoal": subgoal, "intrinsic": intrinsic,
-               "obs": obs_digest(self.prev_obs), "next_obs": obs_digest(obs)}
+               "obs": P.obs_digest(self.prev_obs), "next_obs": P.obs_digest(obs)}
         self.log.write(json.dumps(row) + "\n")
 
     def stats(self) -> dict:

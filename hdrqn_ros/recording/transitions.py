@@ -1,0 +1,271 @@
+"""Transitions <-> bag messages: a run recorded as the training graph's own topics.
+
+A recording holds, per environment group (namespace ``/`` or ``/group<i>``), the per-step
+topics of :mod:`hdrqn_ros.protocol.wire`: ``env_step``, ``observation``, ``action`` and
+``pose``, and for hierarchical agents ``critic``, ``subgoal``, ``subgoal_images`` and
+(hDRQNv2) ``sub_state`` - standard ``sensor_msgs``/``std_msgs``/``geometry_msgs`` types.
+So a bag written here, one the learner node writes, and one ``ros2 bag record -s mcap``
+takes of a running graph are read the same way: :func:`read_episodes` joins each group's
+messages by step key (:class:`~hdrqn_ros.protocol.assembly.TransitionAssembler`) into the
+replay episodes the trainer would have stored. Episode boundaries are in ``env_step``
+(``t`` = 0 starts an episode; ``episode`` counts them).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import yaml
+
+from hdrqn_ros.agents.algorithms import ALGO_SPECS
+from hdrqn_ros.config import TrainConfig
+from hdrqn_ros.envs.domain import NO_SUBGOAL
+from hdrqn_ros.envs.registration import MONTEZUMA_IDS
+from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol.assembly import TransitionAssembler
+from hdrqn_ros.recording.bag import TYPESTORE, BagError, BagWriter, bag_custom_data, open_bag, read_messages
+from hdrqn_ros.training.rollout import StepRecord
+
+CONFIG_KEY = "hdrqn.config"
+"""``custom_data`` key of a recording's training config (YAML of :class:`TrainConfig`)."""
+SOURCE_KEY = "hdrqn.source"
+STEP_PERIOD_NS = 10_000_000
+"""Sim time per recorded step (the environment node's default ``step_period``, 0.01 s)."""
+FRAME_ID = "hdrqn_map"
+
+GROUP_TOPICS = {P.ENV_STEP: P.FLOATS, P.OBSERVATION: P.IMAGE, P.ACTION: P.INTS, P.POSE: P.POSE_STAMPED,
+                P.CRITIC: P.FLOATS, P.SUBGOAL: P.INTS, P.SUBGOAL_IMAGES: P.IMAGE, P.SUB_STATE: P.FLOATS}
+"""A group's recorded topics and their ROS 2 types."""
+
+
+class RosbagsMessages:
+    """What :mod:`~hdrqn_ros.protocol.wire`'s ``make_*`` need of a node: message classes
+    (``rosbags``' ROS 2 Jazzy classes, serialized with its CDR codec) and ``pack``."""
+
+    @staticmethod
+    def msg(type_name: str) -> type:
+        return TYPESTORE.types[type_name]
+
+    @staticmethod
+    def pack(values):
+        return values
+
+
+def recorded_topics(algo: str) -> list[str]:
+    """The per-group topics a recording of ``algo`` holds."""
+    spec = ALGO_SPECS[algo]
+    names = [P.ENV_STEP, P.OBSERVATION, P.ACTION, P.POSE]
+    if spec.hierarchical:
+        names += [P.CRITIC, P.SUBGOAL, P.SUBGOAL_IMAGES]
+    if spec.meta_input == "state":
+        names.append(P.SUB_STATE)
+    return names
+
+
+class BagRecorder:
+    """A :class:`BagWriter` for recordings: message timestamps are the wall clock at
+    recording (ns), made strictly increasing so that readers see the recording order."""
+
+    def __init__(self, path, cfg: TrainConfig, source: str, *, split_bytes: int = 256 * 2**20,
+                 split_seconds: float = 0.0, compress: bool = True):
+        custom = {CONFIG_KEY: yaml.safe_dump(cfg.model_dump(), sort_keys=False), SOURCE_KEY: source}
+        self.writer = BagWriter(path, split_bytes=split_bytes, split_seconds=split_seconds, compress=compress,
+                                custom_data=custom)
+        self.path = self.writer.path
+        self.messages = 0
+        self._last_ns = 0
+
+    def add_group(self, namespace: str, topics: list[str]) -> dict[str, int]:
+        """Register a group's topics; returns topic name -> connection id."""
+        return {name: self.writer.add_topic(P.group_topic(namespace, name), GROUP_TOPICS[name],
+                                            depth=P.STEP_QOS.depth if name != P.POSE else 10)
+                for name in topics}
+
+    def write(self, connection: int, cdr: bytes) -> None:
+        self._last_ns = max(time.time_ns(), self._last_ns + 1)
+        self.writer.write(connection, self._last_ns, cdr)
+        self.messages += 1
+
+    def close(self) -> None:
+        self.writer.close()
+
+
+@dataclass
+class _EnvTrack:
+    """One recorded environment's place in its own step-key sequence."""
+
+    key: int = 0
+    t: int = 0
+    episode: int = 0
+    env_steps: int = 0
+    open: bool = False
+
+
+class TransitionRecorder:
+    """Records the in-process trainer's :class:`StepRecord` rows: environment ``i`` becomes
+    group ``/group<i>`` (``/`` for one environment) with its own step keys, as if it were an
+    environment node. The rollout must be made with ``record_subgoal_images=True``."""
+
+    def __init__(self, path, cfg: TrainConfig, num_envs: int, **bag_options):
+        self.bag = BagRecorder(path, cfg, "hdrqn train", **bag_options)
+        self.spec = ALGO_SPECS[cfg.algo]
+        self.namespaces = P.group_namespaces(num_envs)
+        topics = recorded_topics(cfg.algo)
+        self.conns = [self.bag.add_group(ns, topics) for ns in self.namespaces]
+        self.envs = [_EnvTrack() for _ in self.namespaces]
+        self.grid = cfg.env not in MONTEZUMA_IDS
+        self.m = RosbagsMessages()
+
+    @property
+    def path(self) -> Path:
+        return self.bag.path
+
+    def _put(self, i: int, topic: str, msg) -> None:
+        self.bag.write(self.conns[i][topic], TYPESTORE.serialize_cdr(msg, GROUP_TOPICS[topic]))
+
+    def _step_record(self, i: int, values: dict) -> None:
+        e = self.envs[i]
+        row = {f: 0.0 for f in P.STEP_FIELDS}
+        row.update(key=e.key, env_steps=e.env_steps, episode=e.episode, t=e.t, **values)
+        self._put(i, P.ENV_STEP, P.make_record(self.m, P.FLOATS, P.STEP_FIELDS, [row[f] for f in P.STEP_FIELDS]))
+
+    def write(self, rec: StepRecord) -> None:
+        """Record one step of every environment (call after each ``Rollout.step``)."""
+        m, env = self.m, rec.env
+        for i, e in enumerate(self.envs):
+            if not e.open:  # the episode's first observation: t = 0, no action yet
+                e.open, e.t = True, 0
+                e.key += STEP_PERIOD_NS
+                self._step_record(i, {"prev_key": 0, "at_subgoal": NO_SUBGOAL, "decision_point": 1})
+                self._put(i, P.OBSERVATION, P.make_image(m, e.key, rec.obs[i], FRAME_ID))
+                if self.spec.hierarchical:
+                    self._put(i, P.CRITIC, P.make_record(m, P.FLOATS, P.CRITIC_FIELDS, [e.key, 0, 0, 1, -1]))
+            prev = e.key
+            self._put(i, P.ACTION, P.make_record(m, P.INTS, P.ACTION_FIELDS, [prev, int(rec.action[i])]))
+            if self.spec.hierarchical and rec.new_option[i]:
+                self._put(i, P.SUBGOAL, P.make_record(m, P.INTS, P.SUBGOAL_FIELDS, [prev, int(rec.subgoal[i]), 1]))
+                self._put(i, P.SUBGOAL_IMAGES, P.make_image(m, prev, rec.all_subgoal_images[i], FRAME_ID))
+            if self.spec.meta_input == "state" and rec.option_done[i]:
+                self._put(i, P.SUB_STATE, P.make_state(m, prev, rec.meta_next_input[i].astype(np.float64)))
+            e.key += STEP_PERIOD_NS
+            e.t += 1
+            e.env_steps += 1
+            done = bool(env.terminated[i] or env.truncated[i])
+            decision = (env.at_subgoal[i] >= 0 or env.life_lost[i]) and not done
+            self._step_record(i, {
+                "prev_key": prev, "action": int(rec.action[i]), "extrinsic": float(env.extrinsic[i]),
+                "classical": float(env.classical[i]), "terminated": bool(env.terminated[i]),
+                "truncated": bool(env.truncated[i]), "at_subgoal": int(env.at_subgoal[i]),
+                "collected": bool(env.collected[i]), "hit_obstacle": bool(env.hit_obstacle[i]),
+                "life_lost": bool(env.life_lost[i]), "success": bool(env.success[i]), "decision_point": decision})
+            if self.spec.hierarchical:
+                reached = int(env.at_subgoal[i] == rec.subgoal[i])
+                self._put(i, P.CRITIC, P.make_record(m, P.FLOATS, P.CRITIC_FIELDS, [
+                    e.key, float(rec.intrinsic[i]), reached, int(rec.option_done[i]), int(rec.subgoal[i])]))
+            self._put(i, P.OBSERVATION, P.make_image(m, e.key, env.obs[i], FRAME_ID))
+            a, b = (float(v) for v in env.agent_pos[i])
+            self._put(i, P.POSE, P.make_pose(m, e.key, FRAME_ID, *((b, a) if self.grid else (a, b))))
+            if done:
+                e.open = False
+                e.episode += 1
+
+    def close(self) -> None:
+        self.bag.close()
+
+
+# -- reading ---------------------------------------------------------------------------------------
+class _BagAssembler(TransitionAssembler):
+    """A :class:`TransitionAssembler` for bag data: a malformed message is an error."""
+
+    def __init__(self, bag: Path, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.bag = bag
+
+    def decode(self, topic, read):
+        try:
+            return read()
+        except (P.ProtocolError, ValueError, TypeError, AttributeError) as exc:
+            raise BagError(f"{self.bag}: topic {topic}: {exc}") from None
+
+
+@dataclass
+class BagReadStats:
+    """What :func:`read_episodes` found; counts per bag directory."""
+
+    episodes: dict[str, int] = field(default_factory=dict)
+    transitions: dict[str, int] = field(default_factory=dict)
+    incomplete_episodes: dict[str, int] = field(default_factory=dict)  # cut short by the bag's end or gaps
+
+
+def bag_config(path) -> dict | None:
+    """The training config stored in a recording's metadata (None for other bags)."""
+    text = bag_custom_data(path).get(CONFIG_KEY)
+    if not text:
+        return None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise BagError(f"{path}: metadata.yaml custom_data {CONFIG_KEY} is not YAML ({exc})") from None
+    if not isinstance(data, dict):
+        raise BagError(f"{path}: metadata.yaml custom_data {CONFIG_KEY} is not a mapping")
+    return data
+
+
+def bag_groups(path) -> dict[str, dict[str, str]]:
+    """Group namespace -> {topic name relative to it: type} for every ``.../env_step`` in a bag."""
+    with open_bag(path) as reader:
+        topics = {name: t.msgtype for name, t in reader.topics.items()}
+    groups = {}
+    for name in topics:
+        if name.endswith("/" + P.ENV_STEP):
+            ns = name[: -len(P.ENV_STEP)].rstrip("/") or "/"
+            prefix = "" if ns == "/" else ns
+            groups[ns] = {t[len(prefix) + 1:]: ty for t, ty in topics.items()
+                          if t.startswith(prefix + "/") and "/" not in t[len(prefix) + 1:]}
+    return groups
+
+
+def read_episodes(paths, cfg: TrainConfig, num_subgoals: int, stats: BagReadStats | None = None,
+                  logger: logging.Logger | None = None) -> Iterator[tuple[str, object, object, object]]:
+    """Replay episodes ``(group, sub Episode, meta Episode or None, EpisodeStats)`` for
+    ``cfg.algo`` from the groups of each bag in ``paths``, in recording order.
+
+    Raises :class:`BagError` naming the bag and the problem: not a bag, no ``env_step``
+    topic, a topic ``cfg.algo`` needs missing or of the wrong type, malformed messages
+    (e.g. images of another size than the domain's)."""
+    logger = logger or logging.getLogger("hdrqn.bag")
+    stats = stats if stats is not None else BagReadStats()
+    for path in map(Path, paths):
+        groups = bag_groups(path)
+        if not groups:
+            raise BagError(f"{path}: no {P.ENV_STEP} topic (type {P.FLOATS}): not a recording of hdrqn "
+                           "transitions")
+        finished: list = []
+        handlers, assemblers = {}, []
+        for ns, have in sorted(groups.items()):
+            asm = _BagAssembler(path, ns, cfg, num_subgoals, lambda *ep: finished.append(ep), logger=logger)
+            for name, (type_name, handler) in asm.inputs().items():
+                topic = P.group_topic(ns, name)
+                if name not in have:
+                    raise BagError(f"{path}: topic {topic} is missing; {cfg.algo} needs {sorted(asm.inputs())} "
+                                   f"of each group")
+                if have[name] != type_name:
+                    raise BagError(f"{path}: topic {topic} has type {have[name]}, expected {type_name}")
+                handlers[topic] = (type_name, handler)
+            assemblers.append(asm)
+        key = str(path)
+        for topic, type_name, _t, cdr in read_messages(path, topics=handlers):
+            try:
+                msg = TYPESTORE.deserialize_cdr(cdr, type_name)
+            except Exception as exc:  # truncated or garbled CDR
+                raise BagError(f"{path}: topic {topic}: undecodable {type_name} message ({exc})") from None
+            handlers[topic][1](msg)
+            while finished:
+                stats.episodes[key] = stats.episodes.get(key, 0) + 1
+                yield finished.pop(0)
+        stats.transitions[key] = sum(a.transitions for a in assemblers)
+        stats.incomplete_episodes[key] = sum(a.lost_episodes + a.open for a in assemblers)

@@ -49,6 +49,7 @@ setup(
             "meta_controller = hdrqn_ros.nodes.controllers:main_meta",
             "sub_controller = hdrqn_ros.nodes.controllers:main_sub",
             "learner = hdrqn_ros.nodes.learner:main",
+            "player = hdrqn_ros.nodes.player:main",
         ],
     },
 )

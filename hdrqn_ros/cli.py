@@ -49,6 +49,17 @@ def _add_train(sub) -> None:
     p.add_argument("--eval-every", type=int, help="episodes between greedy evaluations (0: never)")
     p.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    rec = p.add_argument_group("recording and offline training (rosbag2 MCAP bags)")
+    rec.add_argument("--record", metavar="BAG_DIR",
+                     help="also record every transition to this new bag (the graph's topics, one group per env)")
+    rec.add_argument("--record-split-mb", type=float, default=256.0, metavar="MB",
+                     help="start a new bag file after this many MB (default 256)")
+    rec.add_argument("--from-bag", nargs="+", metavar="BAG_DIR",
+                     help="train offline: fill the replay from these bags (ours, or ros2 bag record -s mcap of "
+                          "the graph's topics), train without an environment, then evaluate in it (5 greedy "
+                          "evaluations, none with --eval-every 0); the config defaults to the first bag's recorded one")
+    rec.add_argument("--updates", type=int, metavar="N",
+                     help="offline updates of each controller (default: 10 per update_every transitions)")
 
 
 def _add_up(sub) -> None:
@@ -76,10 +87,13 @@ def _add_up(sub) -> None:
 
 
 def _add_eval(sub) -> None:
-    p = sub.add_parser("eval", help="run greedy evaluation episodes of a checkpoint")
+    p = sub.add_parser("eval", help="run greedy evaluation episodes of a checkpoint (and record them)")
     p.add_argument("--checkpoint", required=True, help="path to a checkpoint (RUN_DIR/checkpoints/last.pt)")
     p.add_argument("--episodes", type=int, default=100)
     p.add_argument("--seed", type=int, default=12345)
+    p.add_argument("--num-envs", type=int, help="environments played in parallel (default: one per episode)")
+    p.add_argument("--epsilon", type=float, default=0.0, help="exploration of both controllers (default 0: greedy)")
+    p.add_argument("--record", metavar="BAG_DIR", help="record the episodes' transitions to this new bag")
 
 
 def _add_plot(sub) -> None:
@@ -102,6 +116,21 @@ def _add_bag(sub) -> None:
     info.add_argument("--json", action="store_true", help="print JSON")
     repair = bag_sub.add_parser("repair", help="recover a bag whose recorder was killed (complete chunks are kept)")
     repair.add_argument("bag", metavar="BAG_DIR")
+    play = bag_sub.add_parser(
+        "play", help="publish a bag's messages on their recorded topics, paced by their timestamps (ros2 bag play)",
+        description="Runs the player node (hdrqn_ros/nodes/player.py) in this process: each message goes out on its "
+                    "recorded topic with the recorded QoS, /clock carries the bag time. DDS stays on the loopback "
+                    "interface unless --interface is given (on a sourced ROS 2 the node uses rclpy and the RMW's "
+                    "own settings). Put --topics after the bag directories.")
+    play.add_argument("bags", nargs="+", metavar="BAG_DIR", help="bag directories, played together in timestamp order")
+    play.add_argument("--rate", type=float, default=1.0, help="playback speed: bag seconds per second (default 1.0)")
+    play.add_argument("--loop", action="store_true", help="start over at the end, until Ctrl-C")
+    play.add_argument("--topics", nargs="+", default=[], metavar="T", help="play only these topics (default: all)")
+    play.add_argument("--no-clock", action="store_true", help="do not publish /clock")
+    play.add_argument("--delay", type=float, default=1.0,
+                      help="seconds between creating the publishers and the first message, for DDS discovery (default 1.0)")
+    play.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)")
+    play.add_argument("--interface", help="network interface for DDS (default: loopback only)")
 
 
 def _add_envs(sub) -> None:
@@ -120,8 +149,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # -- commands -----------------------------------------------------------------------------
-def _config_from_args(args, **flags):
-    """The TrainConfig of a ``train``/``up`` command line: files, then --set, then flags."""
+def _config_from_args(args, base: dict | None = None, **flags):
+    """The TrainConfig of a ``train``/``up`` command line: ``base``, files, then --set, then flags."""
     from hdrqn_ros.config import build_config, parse_set
 
     overrides = parse_set(args.set)
@@ -133,7 +162,7 @@ def _config_from_args(args, **flags):
     if args.resume and not files and (run_dir / "config.yaml").exists():
         files = [run_dir / "config.yaml"]
     flags.update(algo=args.algo, env=args.env, episodes=args.episodes, seed=args.seed)
-    return build_config(files, **{**overrides, **{k: v for k, v in flags.items() if v is not None}})
+    return build_config(files, base=base, **{**overrides, **{k: v for k, v in flags.items() if v is not None}})
 
 
 def _done_line(summary: dict, run_dir: Path, how: str) -> str:
@@ -148,14 +177,68 @@ def cmd_train(args) -> int:
     from hdrqn_ros.training.plots import plot_runs
     from hdrqn_ros.training.trainer import Trainer
 
+    if args.from_bag:
+        return _train_offline(args)
+    if args.updates is not None:
+        raise UsageError("--updates is for offline training (--from-bag)")
     run_dir = Path(args.out)
     cfg = _config_from_args(args, num_envs=args.num_envs, device=args.device, eval_every=args.eval_every)
     print(f"training {cfg.algo} on {cfg.env} {cfg.env_kwargs} for {cfg.episodes} episodes "
           f"({cfg.num_envs} envs, seed {cfg.seed}) -> {run_dir}", file=sys.stderr)
-    trainer = Trainer(cfg, run_dir, resume=args.resume, progress=not args.no_progress)
+    sink = None
+    if args.record:
+        from hdrqn_ros.recording.transitions import TransitionRecorder
+
+        if args.record_split_mb <= 0:
+            raise UsageError(f"--record-split-mb must be > 0, got {args.record_split_mb}")
+        sink = TransitionRecorder(args.record, cfg, cfg.num_envs, split_bytes=int(args.record_split_mb * 2**20),
+                                  source="hdrqn train")
+        print(f"recording transitions to {sink.path}", file=sys.stderr)
+    try:
+        trainer = Trainer(cfg, run_dir, resume=args.resume, progress=not args.no_progress, sink=sink)
+    except BaseException:
+        if sink is not None:
+            sink.close()
+        raise
     summary = trainer.run()
+    if sink is not None:
+        print(f"recorded {sink.bag.messages} messages to {sink.path}", file=sys.stderr)
     plot_runs([run_dir], run_dir / "curves.png")
     print(_done_line(summary, run_dir, ""))
+    return 0
+
+
+def _train_offline(args) -> int:
+    from hdrqn_ros.recording.transitions import BagReadStats, bag_config, read_episodes
+    from hdrqn_ros.training.offline import OfflineTrainer
+
+    if args.record or args.resume:
+        raise UsageError("--from-bag cannot be combined with --record or --resume")
+    if args.updates is not None and args.updates < 1:
+        raise UsageError(f"--updates must be >= 1, got {args.updates}")
+    run_dir = Path(args.out)
+    base = bag_config(args.from_bag[0])
+    cfg = _config_from_args(args, base=base, num_envs=args.num_envs, device=args.device,
+                            eval_every=args.eval_every)
+    origin = "the bag's recorded config" if base else "defaults (the bag has no recorded config)"
+    print(f"offline {cfg.algo} on {cfg.env} {cfg.env_kwargs} from {len(args.from_bag)} bag(s), config from "
+          f"{origin} -> {run_dir}", file=sys.stderr)
+    trainer = OfflineTrainer(cfg, run_dir, progress=not args.no_progress)
+    stats = BagReadStats()
+    n = trainer.fill(read_episodes(args.from_bag, cfg, trainer.agent.num_subgoals, stats))
+    for bag in args.from_bag:
+        key = str(Path(bag))
+        print(f"  {bag}: {stats.episodes.get(key, 0)} episodes ({stats.incomplete_episodes.get(key, 0)} "
+              f"incomplete ones left out)", file=sys.stderr)
+    if n == 0:
+        raise UsageError(f"no complete episode for {cfg.algo} in {', '.join(args.from_bag)}")
+    updates = args.updates or max(1, 10 * trainer.env_steps // cfg.update_every)
+    summary = trainer.run(updates, evaluations=0 if args.eval_every == 0 else 5)
+    before, final = summary["before_eval"] or {}, summary["final_eval"] or {}
+    print(f"done: {summary['updates']} updates on {n} episodes ({summary['transitions']} transitions) in "
+          f"{summary['wall_s']} s; greedy eval success {before.get('success', float('nan')):.2f} before -> "
+          f"{final.get('success', float('nan')):.2f} after, steps {before.get('steps', float('nan')):.1f} -> "
+          f"{final.get('steps', float('nan')):.1f}; run in {run_dir}")
     return 0
 
 
@@ -216,12 +299,29 @@ def cmd_eval(args) -> int:
 
     if args.episodes < 1:
         raise UsageError(f"--episodes must be >= 1, got {args.episodes}")
+    if args.num_envs is not None and args.num_envs < 1:
+        raise UsageError(f"--num-envs must be >= 1, got {args.num_envs}")
+    if not 0.0 <= args.epsilon <= 1.0:
+        raise UsageError(f"--epsilon must be in [0, 1], got {args.epsilon}")
     payload = load_checkpoint(args.checkpoint)
     cfg = TrainConfig.model_validate({**payload["config"], "device": "cpu"})
     agent = build_agent(cfg)
     agent.load_state_dict(payload["agent"])
-    result = evaluate(agent, cfg, args.episodes, args.seed)
+    sink = None
+    if args.record:
+        from hdrqn_ros.recording.transitions import TransitionRecorder
+
+        sink = TransitionRecorder(args.record, cfg, min(args.num_envs or args.episodes, args.episodes),
+                                  source=f"hdrqn eval --checkpoint {args.checkpoint} --epsilon {args.epsilon}")
+    try:
+        result = evaluate(agent, cfg, args.episodes, args.seed, epsilon=args.epsilon, sink=sink,
+                          num_envs=args.num_envs)
+    finally:
+        if sink is not None:
+            sink.close()
     print(json.dumps({"algo": cfg.algo, "env": cfg.env, **result}, indent=2))
+    if sink is not None:
+        print(f"recorded {sink.bag.messages} messages to {sink.path}", file=sys.stderr)
     return 0
 
 
@@ -242,6 +342,40 @@ def cmd_plot(args) -> int:
 def cmd_bag(args) -> int:
     from hdrqn_ros.recording.bag import BagError, bag_summary, repair_bag
 
+    if args.bag_command == "play":
+        import math
+
+        from hdrqn_ros.nodes.common import run_node
+        from hdrqn_ros.nodes.player import PlayerNode
+
+        if not (math.isfinite(args.rate) and args.rate > 0):
+            raise UsageError(f"--rate must be > 0, got {args.rate}")
+        if not (math.isfinite(args.delay) and args.delay >= 0):
+            raise UsageError(f"--delay must be >= 0, got {args.delay}")
+        if args.domain_id is not None:
+            if not 0 <= args.domain_id <= 232:
+                raise UsageError(f"--domain-id must be in 0..232, got {args.domain_id}")
+            os.environ["ROS_DOMAIN_ID"] = str(args.domain_id)
+
+        def yaml_float(x: float) -> str:  # "1e-05" is a string in YAML 1.1; "1.0e-05" a float
+            mantissa, e, exponent = repr(float(x)).partition("e")
+            return mantissa + ("" if "." in mantissa else ".0") + e + exponent
+
+        ros = ["-p", f"bag:={json.dumps(args.bags)}", "-p", f"rate:={yaml_float(args.rate)}",
+               "-p", f"loop:={str(args.loop).lower()}", "-p", f"topics:={json.dumps(args.topics or [''])}",
+               "-p", f"clock:={str(not args.no_clock).lower()}", "-p", f"delay:={yaml_float(args.delay)}"]
+        if args.interface:
+            ros += ["-p", f"dds_interface:={json.dumps(args.interface)}"]
+
+        def progress(player) -> None:
+            if player.bag_time_ns is None or player.start_ns is None:
+                return
+            done = max(0, player.published - (player.passes - 1) * player.total)
+            print(f"bag play: pass {player.passes}, {done}/{player.total} messages, bag time "
+                  f"{(player.bag_time_ns - player.start_ns) / 1e9:.2f}/{(player.end_ns - player.start_ns) / 1e9:.2f} s",
+                  file=sys.stderr, flush=True)
+
+        return run_node(lambda mw: PlayerNode(mw, progress=progress), ["hdrqn bag play", "--ros-args", *ros])
     try:
         if args.bag_command == "repair":
             report = repair_bag(args.bag)
@@ -288,11 +422,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from hdrqn_ros.agents.controller import TrainingDiverged
     from hdrqn_ros.config import ConfigError
+    from hdrqn_ros.recording.bag import BagError
     from hdrqn_ros.training.checkpoint import CheckpointError
 
     try:
         return COMMANDS[args.command](args)
-    except (UsageError, ConfigError, CheckpointError, ValueError, FileNotFoundError) as exc:
+    except (UsageError, ConfigError, CheckpointError, BagError, ValueError, FileNotFoundError) as exc:
         if os.environ.get("HDRQN_DEBUG"):
             raise
         print(f"hdrqn {args.command}: error: {exc}", file=sys.stderr)

@@ -130,13 +130,15 @@ def parse_set(items: list[str]) -> dict[str, Any]:
     return out
 
 
-def build_config(files: list[str | Path] = (), **overrides: Any) -> TrainConfig:
-    """Defaults, then each YAML file in order, then ``overrides`` (``None`` values skipped;
-    nested dicts merge key by key).
+def build_config(files: list[str | Path] = (), base: dict | None = None, **overrides: Any) -> TrainConfig:
+    """Defaults, then ``base`` (e.g. a recording's config), then each YAML file in order,
+    then ``overrides`` (``None`` values skipped; nested dicts merge key by key).
 
     Raises :class:`ConfigError` naming the file and the bad key or value.
     """
     data: dict[str, Any] = TrainConfig().model_dump()  # nested sections merge onto the defaults
+    if base:
+        data = _merge(data, base)
     for file in files:
         data = _merge(data, read_mapping(file, ConfigError, "config ", empty_ok=True))
     data = _merge(data, {k: v for k, v in overrides.items() if v is not None})

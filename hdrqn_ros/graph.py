@@ -69,5 +69,5 @@ def graph_processes(cfg: TrainConfig, params: Path, groups: int, respawn: bool =
                 argv += ["-p", "publish_clock:=false"]  # one sim clock: group 0's
             specs.append(ProcessSpec(name=f"{ns.strip('/') or 'graph'}/{node}", argv=argv, respawn=respawn))
     learner_argv = _command("learner") + ["--ros-args", "--params-file", str(params), "-p", "resume:=true"]
-    specs.append(ProcessSpec(name="learner", argv=learner_argv, respawn=respawn, required=not respawn))
+    specs.append(ProcessSpec(name="learner", argv=learner_argv, respawn=respawn, required=True))
     return specs

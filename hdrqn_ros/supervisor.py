@@ -27,6 +27,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable
 
+USAGE_EXIT = 2
+"""Exit code of a process that rejected its parameters or input (never respawned)."""
 _LIVE: set[subprocess.Popen] = set()  # children not yet reaped (atexit safety net)
 
 
@@ -52,7 +54,8 @@ class ProcessSpec:
 
     name: str                    # e.g. "group0/environment" (status line, log file name)
     argv: list[str]              # command to run
-    respawn: bool = False        # restart after any exit while not stopping
+    respawn: bool = False        # restart after an exit while not stopping (not after exit code
+    #                              2, bad parameters or input: a restart would fail the same way)
     respawn_delay_s: float = 1.0
     required: bool = False       # its (non-respawned) exit stops everything
 
@@ -143,8 +146,13 @@ class Supervisor:
                 spec = self.specs[name]
                 if self._stopped:
                     continue
-                if spec.respawn:
+                if spec.respawn and p.returncode != USAGE_EXIT:
                     self._respawn_at[name] = now + spec.respawn_delay_s
+                elif spec.respawn:
+                    print(f"[supervisor] {name} exited with code {USAGE_EXIT} (bad parameters or input, see its "
+                          f"log); not respawning it", file=sys.stderr)
+                    if spec.required and self._required_exit is None:
+                        self._required_exit = (name, p.returncode)
                 elif spec.required and self._required_exit is None:
                     self._required_exit = (name, p.returncode)
         for name, t in list(self._respawn_at.items()):

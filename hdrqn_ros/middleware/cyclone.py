@@ -138,6 +138,14 @@ class CycloneNode(Node):
     def msg(self, type_name: str) -> type:
         return message_class(type_name)
 
+    def to_cdr(self, msg: Any) -> bytes:
+        if getattr(type(msg), "__ros_type__", None) is None:
+            raise TypeError(f"not a ROS message of this backend: {type(msg).__name__}")
+        return msg.serialize(use_version_2=False)
+
+    def from_cdr(self, type_name: str, data: bytes) -> Any:
+        return message_class(type_name).deserialize(bytes(data), has_header=True)
+
     @property
     def logger(self) -> logging.Logger:
         return self._logger

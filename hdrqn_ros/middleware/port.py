@@ -56,6 +56,16 @@ class Node(ABC):
     def msg(self, type_name: str) -> type:
         """The message class for ``type_name`` (``"pkg/msg/Type"``)."""
 
+    def to_cdr(self, msg: Any) -> bytes:
+        """``msg`` serialized as ROS 2 does (XCDR1), with the 4-byte encapsulation header
+        (``00 01 00 00``, little-endian): the bytes a rosbag2 bag stores for it."""
+        raise NotImplementedError(f"{type(self).__name__} cannot serialize messages")
+
+    def from_cdr(self, type_name: str, data: bytes) -> Any:
+        """The message of type ``type_name`` that the CDR bytes ``data`` (encapsulation header
+        first, as in a rosbag2 bag) hold; :class:`ValueError` for an unknown type."""
+        raise NotImplementedError(f"{type(self).__name__} cannot deserialize messages")
+
     def pack(self, values) -> Any:
         """A numeric numpy array as the value of a message's array field (numpy here;
         ``array.array`` for rclpy, whose message classes accept no numpy arrays)."""

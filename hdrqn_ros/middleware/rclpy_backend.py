@@ -20,6 +20,7 @@ try:
     from rclpy.exceptions import InvalidParameterTypeException
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from rclpy.serialization import deserialize_message, serialize_message
 except ImportError as exc:  # no sourced ROS 2 (or a broken one): the Cyclone backend is used
     _RCLPY_IMPORT_ERROR: ImportError | None = exc
 else:
@@ -98,6 +99,13 @@ class RclpyNode(Node):
     def msg(self, type_name: str) -> type:
         """The rosidl class for ``"pkg/msg/Type"``; :class:`ValueError` for an unknown type."""
         return _message_class(type_name)
+
+    def to_cdr(self, msg: Any) -> bytes:
+        """CDR through the RMW's serializer (``rclpy.serialization``), header included."""
+        return bytes(serialize_message(msg))
+
+    def from_cdr(self, type_name: str, data: bytes) -> Any:
+        return deserialize_message(bytes(data), self.msg(type_name))
 
     def pack(self, values) -> Any:
         """numpy -> ``array.array`` (rosidl array fields check for it; numpy is refused)."""

@@ -18,6 +18,7 @@ import queue
 import threading
 import time
 from collections import deque
+from contextlib import suppress
 from pathlib import Path
 
 import numpy as np
@@ -27,17 +28,26 @@ from hdrqn_ros.config import build_config, parse_set
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
 from hdrqn_ros.protocol import wire as P
 from hdrqn_ros.protocol.assembly import TransitionAssembler
+from hdrqn_ros.recording.bag import BagError
+from hdrqn_ros.recording.transitions import BagRecorder, read_episodes
 from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, check_algo, env_kwargs, run_node
 from hdrqn_ros.training.learner import EVAL_SEED_OFFSET, Learner, evaluate
 
 PARAMETERS = {**ENV_DEFAULTS, "config": "", "overrides": [""], "episodes": 1000, "run_dir": "runs/graph",
               "groups": ["/"], "resume": False, "weights_every": 25, "credit_window": 20, "max_owed_updates": 2,
-              "status_period": 1.0, "evaluate": True, "transition_log": ""}
+              "status_period": 1.0, "evaluate": True, "transition_log": "", "record": "", "record_split_mb": 256.0,
+              "bags": [""], "offline_updates": 0}
 """``config``: a training config YAML (``hdrqn train --config``); ``overrides``:
 ``key=value`` items like ``hdrqn train --set``; the parameters ``algo``, ``env``, ``view``,
 ``seed``, ``episodes`` win over both. ``resume``: continue from ``run_dir``'s checkpoint
 when there is one. ``transition_log``: append every assembled transition to this JSON-lines
-file (keys, action, rewards, flags, observation digests: for checking alignment)."""
+file (keys, action, rewards, flags, observation digests: for checking alignment).
+``record``: write every message the learner takes from the groups to this new rosbag2 MCAP
+bag (split every ``record_split_mb`` MB; a restarted learner records to ``<record>-restart<k>``).
+``bags``: fill the replay from these bags before training (not counted as this run's
+episodes), then run ``offline_updates`` updates on them before taking the graph's data.
+With no groups (``groups: [""]``) the learner trains offline only: ``offline_updates``
+(default 10 per ``update_every`` recorded steps), then evaluates and finishes."""
 
 EPISODE_QUEUE = 256
 """Finished episodes waiting for the training thread (bounded; the credit keeps it short)."""
@@ -45,13 +55,18 @@ EPISODE_QUEUE = 256
 
 class GroupAssembler(TransitionAssembler):
     """A :class:`TransitionAssembler` fed by the learner node's subscriptions to one group,
-    which also publishes the group's ``learner_credit``."""
+    which also publishes the group's ``learner_credit`` and may record what it receives."""
 
-    def __init__(self, node, namespace: str, learner: Learner, episodes: "queue.Queue", log=None):
+    def __init__(self, node, namespace: str, learner: Learner, episodes: "queue.Queue", log=None,
+                 recorder: "GraphRecorder | None" = None):
         super().__init__(namespace, learner.cfg, learner.agent.num_subgoals,
                          lambda *episode: episodes.put(episode), node=node, log=log)
         self.last_credit: tuple | None = None
-        for name, (type_name, handler) in self.inputs().items():
+        inputs = self.inputs()
+        conns = recorder.add_group(namespace, list(inputs)) if recorder is not None else {}
+        for name, (type_name, handler) in inputs.items():
+            if name in conns:
+                handler = recorder.recording(conns[name], handler)
             node.create_subscription(type_name, self.topic(name), handler, P.STEP_QOS)
         self.credit_pub = node.create_publisher(P.FLOATS, self.topic(P.CREDIT), LATCHED_QOS)
 
@@ -64,6 +79,41 @@ class GroupAssembler(TransitionAssembler):
             return
         self.last_credit = values
         self.credit_pub.publish(P.make_record(self.node, P.FLOATS, P.CREDIT_FIELDS, [*values, self.last_key, epoch]))
+
+
+class GraphRecorder:
+    """Writes the messages the learner receives to a bag, as received (CDR bytes)."""
+
+    def __init__(self, node, path: str, cfg, split_mb: float):
+        if split_mb <= 0:
+            raise NodeConfigError(f"record_split_mb must be > 0, got {split_mb}")
+        target, k = Path(path), 0
+        while target.exists():  # a restarted learner: keep the earlier bag, start a new one
+            k += 1
+            target = Path(f"{path}-restart{k}")
+        self.node = node
+        self.bag = BagRecorder(target, cfg, "learner node", split_bytes=int(split_mb * 2**20))
+        self.failed = False
+        node.logger.info("recording the groups' messages to %s", target)
+
+    def add_group(self, namespace: str, topics: list[str]) -> dict[str, int]:
+        return self.bag.add_group(namespace, topics)
+
+    def recording(self, connection: int, handler):
+        def record_then_handle(msg) -> None:
+            if not self.failed:
+                try:
+                    self.bag.write(connection, self.node.to_cdr(msg))
+                except BagError as exc:  # disk full, permissions: stop recording, keep training
+                    self.failed = True
+                    self.node.logger.error("recording stopped: %s", exc)
+            handler(msg)
+        return record_then_handle
+
+    def close(self) -> None:
+        if not self.failed:
+            with suppress(BagError):
+                self.bag.close()
 
 
 class LearnerNode:
@@ -86,8 +136,18 @@ class LearnerNode:
                 raise NodeConfigError(f"{key} must be >= 1, got {p[key]}")
         self.episodes: queue.Queue = queue.Queue(EPISODE_QUEUE)
         self.transition_log = open(p["transition_log"], "a", buffering=1) if p["transition_log"] else None
-        self.groups = [GroupAssembler(node, ns, self.learner, self.episodes, self.transition_log)
-                       for ns in p["groups"]]
+        if p["offline_updates"] < 0:
+            raise NodeConfigError(f"offline_updates must be >= 0, got {p['offline_updates']}")
+        bags, namespaces = [b for b in p["bags"] if b], [ns for ns in p["groups"] if ns]
+        if not bags and not namespaces:
+            raise NodeConfigError("nothing to learn from: give environment groups (groups) or bags (bags)")
+        self.prefilled = self._prefill(bags)
+        self.offline_updates = p["offline_updates"]
+        if not namespaces and not self.offline_updates:
+            self.offline_updates = max(1, 10 * self.prefilled[1] // cfg.update_every)
+        self.recorder = GraphRecorder(node, p["record"], cfg, p["record_split_mb"]) if p["record"] else None
+        self.groups = [GroupAssembler(node, ns, self.learner, self.episodes, self.transition_log, self.recorder)
+                       for ns in namespaces]
         self.weight_pubs = {c.name: node.create_publisher(P.BYTES, P.WEIGHTS[c.name], LATCHED_QOS)
                             for c in self.learner.agent.controllers}
         self.status_pub = node.create_publisher(P.STRING, P.STATUS, LATCHED_QOS)
@@ -106,12 +166,32 @@ class LearnerNode:
         self.thread = threading.Thread(target=self._train, name="learner-train", daemon=True)
         self.thread.start()
 
+    def _prefill(self, bags: list[str]) -> tuple[int, int]:
+        """Fill the replay from ``bags``; returns (episodes, steps)."""
+        if not bags:
+            return 0, 0
+        items = read_episodes(bags, self.learner.cfg, self.learner.agent.num_subgoals, logger=self.node.logger)
+        episodes, steps = self.learner.prefill(items)
+        self.node.logger.info("replay filled from %d bag(s): %d episodes, %d steps", len(bags), episodes, steps)
+        if not episodes:
+            raise NodeConfigError(f"no complete episode for {self.learner.cfg.algo} in {bags}")
+        return episodes, steps
+
     # -- the training thread ---------------------------------------------------------------------
     def _train(self) -> None:
         learner, cfg = self.learner, self.learner.cfg
         counted = {id(g): g.transitions for g in self.groups}
         next_ckpt = learner._next_multiple(cfg.checkpoint_every)
         try:
+            for i in range(1, self.offline_updates + 1):
+                if self._stop.is_set():
+                    return
+                learner._update(offline=True)
+                if i % self.params["weights_every"] == 0:
+                    self._publish_weights()
+            if not self.groups:
+                self._finish()
+                return
             while not self._stop.is_set() and learner.episodes < cfg.episodes:
                 for g in self.groups:
                     learner.add_steps(g.transitions - counted[id(g)])
@@ -173,7 +253,8 @@ class LearnerNode:
                         "env_steps_per_s": round(steps / max(wall, 1e-9), 1),
                         "updates": learner.agent.sub.updates,
                         "train_success_last100": float(np.mean([s.success for s in self.recent])) if self.recent
-                        else None, "final_eval": final, "groups": {g.ns or "/": g.stats() for g in self.groups}}
+                        else None, "final_eval": final, "groups": {g.ns or "/": g.stats() for g in self.groups},
+                        "prefilled": {"episodes": self.prefilled[0], "steps": self.prefilled[1]}}
         (learner.run_dir / "summary.json").write_text(json.dumps(self.summary, indent=2))
         self._status()
         self.node.logger.info("done: %s", json.dumps(self.summary))
@@ -207,6 +288,8 @@ class LearnerNode:
         self.learner.log.close()
         if self.transition_log is not None:
             self.transition_log.close()
+        if self.recorder is not None:
+            self.recorder.close()
 
 
 def main(argv: list[str] | None = None) -> int:

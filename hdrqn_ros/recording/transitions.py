@@ -110,8 +110,8 @@ class TransitionRecorder:
     group ``/group<i>`` (``/`` for one environment) with its own step keys, as if it were an
     environment node. The rollout must be made with ``record_subgoal_images=True``."""
 
-    def __init__(self, path, cfg: TrainConfig, num_envs: int, **bag_options):
-        self.bag = BagRecorder(path, cfg, "hdrqn train", **bag_options)
+    def __init__(self, path, cfg: TrainConfig, num_envs: int, source: str = "hdrqn train", **bag_options):
+        self.bag = BagRecorder(path, cfg, source, **bag_options)
         self.spec = ALGO_SPECS[cfg.algo]
         self.namespaces = P.group_namespaces(num_envs)
         topics = recorded_topics(cfg.algo)
@@ -269,3 +269,37 @@ def read_episodes(paths, cfg: TrainConfig, num_subgoals: int, stats: BagReadStat
                 yield finished.pop(0)
         stats.transitions[key] = sum(a.transitions for a in assemblers)
         stats.incomplete_episodes[key] = sum(a.lost_episodes + a.open for a in assemblers)
+
+
+def episode_summary(path) -> dict[str, dict]:
+    """Per group of a recording (from its ``env_step`` topic alone): complete episodes,
+    mean return (classical reward), success rate, mean length, and episodes cut short."""
+    groups = {P.group_topic(ns, P.ENV_STEP): ns for ns, have in bag_groups(path).items()
+              if have.get(P.ENV_STEP) == P.FLOATS}
+    acc = {ns: {"episodes": 0, "incomplete": 0, "returns": [], "successes": 0, "steps": 0} for ns in groups.values()}
+    open_return: dict[str, float | None] = dict.fromkeys(groups.values())
+    for topic, type_name, _t, cdr in read_messages(path, topics=groups):
+        ns, a = groups[topic], acc[groups[topic]]
+        try:
+            step = P.read_record(TYPESTORE.deserialize_cdr(cdr, type_name), P.STEP_FIELDS)
+        except Exception as exc:  # not our layout, or garbled
+            raise BagError(f"{path}: topic {topic}: {exc}") from None
+        if step["t"] == 0:
+            if open_return[ns] is not None:
+                a["incomplete"] += 1
+            open_return[ns] = 0.0
+        elif open_return[ns] is not None:
+            open_return[ns] += step["classical"]
+            if step["terminated"] or step["truncated"]:
+                a["episodes"] += 1
+                a["returns"].append(open_return[ns])
+                a["successes"] += bool(step["success"])
+                a["steps"] += int(step["t"])
+                open_return[ns] = None
+    out = {}
+    for ns, a in acc.items():
+        n = a["episodes"]
+        out[ns] = {"episodes": n, "incomplete": a["incomplete"] + (open_return[ns] is not None),
+                   "mean_return": float(np.mean(a["returns"])) if n else None,
+                   "success_rate": a["successes"] / n if n else None, "mean_steps": a["steps"] / n if n else None}
+    return out

@@ -30,19 +30,30 @@ def build_agent(cfg: TrainConfig) -> Agent:
     return Agent(cfg, probe.num_actions, probe.num_subgoals)
 
 
-def evaluate(agent: Agent, cfg: TrainConfig, episodes: int, seed: int) -> dict:
-    """Greedy (epsilon 0) episodes, one per environment of a fresh batch, in parallel.
+def evaluate(agent: Agent, cfg: TrainConfig, episodes: int, seed: int, epsilon: float = 0.0, sink=None,
+             num_envs: int | None = None) -> dict:
+    """Greedy (``epsilon`` 0) episodes on ``num_envs`` parallel environments of a fresh
+    batch (default: one per episode); each environment plays ``ceil(episodes / num_envs)``.
+    ``sink``: also hand it every step (``write(StepRecord)``), e.g. to record them.
 
     Returns the means of success (ordered success / key), steps, rewards over episodes.
     """
-    batch = make_batch(cfg.env, episodes, **cfg.env_kwargs)
-    rollout = Rollout(batch, agent, seed=seed, meta_state=cfg.meta_state)
-    recorder = EpisodeRecorder(episodes, agent.meta is not None, cfg.sub.gamma, cfg.meta.gamma)
-    results: dict[int, EpisodeStats] = {}
+    n = min(num_envs or episodes, episodes)
+    quota = -(-episodes // n)
+    batch = make_batch(cfg.env, n, **cfg.env_kwargs)
+    rollout = Rollout(batch, agent, seed=seed, meta_state=cfg.meta_state, record_subgoal_images=sink is not None)
+    recorder = EpisodeRecorder(n, agent.meta is not None, cfg.sub.gamma, cfg.meta.gamma)
+    results: dict[tuple[int, int], EpisodeStats] = {}
+    played = np.zeros(n, np.int64)
     rng = np.random.default_rng(seed)
-    while len(results) < episodes:
-        for i, _, _, stats in recorder.add(rollout.step(0.0, 0.0, rng)):
-            results.setdefault(i, stats)
+    while len(results) < n * quota:
+        record = rollout.step(epsilon, epsilon, rng)
+        if sink is not None:
+            sink.write(record)
+        for i, _, _, stats in recorder.add(record):
+            if played[i] < quota:
+                results[(i, int(played[i]))] = stats
+            played[i] += 1
     rows = list(results.values())
     return {"episodes": len(rows), "success": float(np.mean([r.success for r in rows])),
             "steps": float(np.mean([r.steps for r in rows])), "reward": float(np.mean([r.classical for r in rows])),
@@ -90,8 +101,9 @@ class Learner:
             self.meta_begin = self.env_steps
         return eps_sub, cfg.meta.epsilon.value(self.env_steps - self.meta_begin)
 
-    def _learning(self, ctrl) -> bool:
-        return len(ctrl.replay) >= ctrl.cfg.batch_size and self.env_steps >= self.cfg.learning_starts
+    def _learning(self, ctrl, offline: bool = False) -> bool:
+        """Enough data for ``ctrl`` to update (offline: no ``learning_starts`` warm-up)."""
+        return len(ctrl.replay) >= ctrl.cfg.batch_size and (offline or self.env_steps >= self.cfg.learning_starts)
 
     # -- checkpoints ---------------------------------------------------------------------
     def _resume(self) -> None:
@@ -114,6 +126,17 @@ class Learner:
                         progress={"episodes": self.episodes, "env_steps": self.env_steps, "meta_begin": self.meta_begin})
 
     # -- learning --------------------------------------------------------------------------
+    def prefill(self, items) -> tuple[int, int]:
+        """Store recorded ``(group, sub Episode, meta Episode or None, EpisodeStats)`` items
+        in replay without counting them as this run's episodes; returns (episodes, steps)."""
+        episodes = steps = 0
+        for _, sub_ep, meta_ep, stats in items:
+            self.agent.sub.replay.add(sub_ep)
+            if meta_ep is not None:
+                self.agent.meta.replay.add(meta_ep)
+            episodes, steps = episodes + 1, steps + stats.steps
+        return episodes, steps
+
     def add_episode(self, sub_ep: Episode, meta_ep: Episode | None) -> None:
         """Store a finished episode in replay."""
         self.agent.sub.replay.add(sub_ep)
@@ -146,13 +169,14 @@ class Learner:
             self._update()
         return n
 
-    def _update(self) -> None:
+    def _update(self, offline: bool = False) -> None:
         """One update of each controller that has enough data; the meta update runs in a
-        second thread beside the sub update (torch releases the GIL in its kernels)."""
+        second thread beside the sub update (torch releases the GIL in its kernels).
+        ``offline``: from prefilled replay, without the ``learning_starts`` warm-up."""
         meta, sub = self.agent.meta, self.agent.sub
-        meta_due = meta is not None and self.episodes >= self.cfg.sub_only_episodes and self._learning(meta)
+        meta_due = meta is not None and self.episodes >= self.cfg.sub_only_episodes and self._learning(meta, offline)
         pending = self._meta_thread.submit(meta.update) if meta_due and self._meta_thread else None
-        if self._learning(sub):
+        if self._learning(sub, offline):
             sub.update()
         if pending is not None:
             pending.result()
@@ -166,7 +190,7 @@ class Learner:
         result = evaluate(self.agent, self.cfg, self.cfg.eval_episodes, self.cfg.seed + EVAL_SEED_OFFSET)
         self.last_eval = {**result, "at": self.episodes}
         self.log.eval({"episode": self.episodes, "env_steps": self.env_steps, **result,
-                       "wall_s": round(time.perf_counter() - start, 2)})
+                       "wall_s": round(time.perf_counter() - start, 2), "updates": self.agent.sub.updates})
         return result
 
 __all__ = ["Learner", "evaluate", "build_agent", "EVAL_SEED_OFFSET"]

@@ -8,7 +8,7 @@ from pathlib import Path
 TRAIN_COLUMNS = ["episode", "env_steps", "steps", "reward", "extrinsic", "intrinsic", "success",
                  "options", "eps_sub", "eps_meta", "wall_s"]
 EVAL_COLUMNS = ["episode", "env_steps", "episodes", "success", "steps", "reward", "extrinsic",
-                "intrinsic", "wall_s"]
+                "intrinsic", "wall_s", "updates"]
 
 
 class MetricsLog:
@@ -42,14 +42,15 @@ class MetricsLog:
         self._files[name].flush()
         if self.tb is not None:
             for key, value in row.items():
-                if key not in ("episode", "env_steps", "wall_s"):
+                if key not in ("episode", "env_steps", "wall_s", "updates"):
                     self.tb.add_scalar(f"{name}/{key}", float(value), int(row[step_key]))
 
     def train(self, row: dict) -> None:
         self._write("train", row, "episode")
 
-    def eval(self, row: dict) -> None:
-        self._write("eval", row, "episode")
+    def eval(self, row: dict, step_key: str = "episode") -> None:
+        """An evaluation row; TensorBoard's x axis is ``row[step_key]`` (offline runs: updates)."""
+        self._write("eval", row, step_key)
 
     def close(self) -> None:
         for f in self._files.values():

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import time
 from collections import deque
+from contextlib import suppress
 from pathlib import Path
 from typing import Protocol
 
@@ -50,7 +51,15 @@ class Trainer(Learner):
         eps_sub, eps_meta = self.epsilons()
         record = self.rollout.step(eps_sub, eps_meta, self.rng)
         if self.sink is not None:
-            self.sink.write(record)
+            try:
+                self.sink.write(record)
+            except Exception:  # e.g. the disk is full: keep what was trained, then stop
+                sink, self.sink = self.sink, None
+                with suppress(Exception):
+                    sink.close()
+                with suppress(Exception):
+                    self.save()
+                raise
         self.add_steps(cfg.num_envs)
         finished = []
         for _, sub_ep, meta_ep, stats in self.recorder.add(record):

@@ -1,0 +1,221 @@
+"""``player`` node: plays rosbag2 (MCAP) bags back onto the graph, like ``ros2 bag play``.
+
+Every recorded message goes out on its recorded topic (an absolute name; ``--ros-args -r
+/from:=/to`` remaps it), with a QoS that suits the publishers' offers stored in the bag
+(reliable / transient-local only if every recorded offer was, the deepest keep-last depth;
+ROS 2's default profile where the bag recorded none), paced by its bag timestamp divided
+by ``rate``. With ``clock`` the node publishes ``/clock`` (``rosgraph_msgs/msg/Clock``) in
+bag time, at most ``clock_hz`` times a wall-clock second and never ahead of the next
+message; a bag that recorded its own ``/clock`` has that played instead.
+
+Reading and publishing run on a background thread; the middleware spins on the main
+thread. The node sets ``finished`` when the bags have been played (``loop``: never, until
+stopped), so :func:`~hdrqn_ros.nodes.common.run_node` exits with ``exit_code`` 0, or 2
+for a bag that cannot be read.
+"""
+from __future__ import annotations
+
+import heapq
+import math
+import sys
+import threading
+import time
+from typing import Any, Callable, Iterator
+
+from hdrqn_ros.middleware import DEFAULT_QOS, Middleware, QoS
+from hdrqn_ros.nodes.common import NodeConfigError, run_node
+from hdrqn_ros.recording.bag import BagError, TopicInfo, bag_summary, bag_topics, read_messages
+
+PARAMETERS = {"bag": [""], "rate": 1.0, "loop": False, "topics": [""], "clock": True, "clock_hz": 100.0,
+              "delay": 1.0}
+"""``bag``: bag directories, played together in timestamp order (empty items are ignored);
+``rate``: bag seconds per wall-clock second (> 0); ``loop``: start over at the end, until
+stopped; ``topics``: recorded topic names to play (``[""]``: all); ``clock``: publish
+``/clock`` in bag time; ``clock_hz``: at most this many generated ``/clock`` messages per
+wall-clock second; ``delay``: seconds to wait after creating the publishers, so that DDS
+discovery matches the subscribers before the first message."""
+
+CLOCK_TOPIC = "/clock"
+CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
+TIME_TYPE = "builtin_interfaces/msg/Time"
+
+
+def _merge(a: TopicInfo | None, b: TopicInfo) -> TopicInfo:
+    """One topic seen in several bags: counts add up, QoS suits every recorded offer."""
+    if a is None:
+        return b
+
+    def both(x, y, combine):
+        return y if x is None else x if y is None else combine(x, y)
+    return TopicInfo(a.type_name, a.message_count + b.message_count,
+                     both(a.reliable, b.reliable, lambda x, y: x and y),
+                     both(a.transient_local, b.transient_local, lambda x, y: x and y),
+                     both(a.depth, b.depth, max))
+
+
+def playback_qos(info: TopicInfo) -> QoS:
+    """The QoS to publish a recorded topic with (:data:`DEFAULT_QOS` for what is unknown)."""
+    return QoS(depth=info.depth or DEFAULT_QOS.depth,
+               reliable=DEFAULT_QOS.reliable if info.reliable is None else info.reliable,
+               transient_local=DEFAULT_QOS.transient_local if info.transient_local is None else info.transient_local)
+
+
+class PlayerNode:
+    """Plays ``bag`` onto the graph. ``progress(player)`` (optional) is called every
+    ``progress_period`` seconds on the spinning thread (the CLI's progress line)."""
+
+    def __init__(self, mw: Middleware, progress: Callable[["PlayerNode"], None] | None = None,
+                 progress_period: float = 2.0):
+        node = self.node = mw.create_node("player")
+        p = self.params = node.declare_parameters(PARAMETERS)
+        self.bags = [b for b in p["bag"] if b]
+        if not self.bags:
+            raise NodeConfigError("no bag to play: set the parameter bag to a list of bag directories")
+        self.rate, self.loop, self.delay = p["rate"], p["loop"], p["delay"]
+        if not (math.isfinite(self.rate) and self.rate > 0):
+            raise NodeConfigError(f"rate must be a number > 0, got {self.rate}")
+        if not (math.isfinite(self.delay) and self.delay >= 0):
+            raise NodeConfigError(f"delay must be >= 0 s, got {self.delay}")
+        if p["clock"] and not (math.isfinite(p["clock_hz"]) and p["clock_hz"] > 0):
+            raise NodeConfigError(f"clock_hz must be > 0, got {p['clock_hz']}")
+
+        infos: dict[str, TopicInfo] = {}
+        first_bag: dict[str, str] = {}
+        spans: list[tuple[int, int]] = []
+        for bag in self.bags:
+            for topic, info in bag_topics(bag).items():
+                if topic in infos and infos[topic].type_name != info.type_name:
+                    raise BagError(f"{bag}: topic {topic} is {info.type_name}, but {infos[topic].type_name} "
+                                   f"in {first_bag[topic]}: bags played together must agree on types")
+                infos[topic] = _merge(infos.get(topic), info)
+                first_bag.setdefault(topic, bag)
+            summary = bag_summary(bag)
+            if summary["message_count"]:
+                spans.append((summary["start_ns"], summary["end_ns"]))
+
+        # the bags' time span (all topics), for progress reports
+        self.start_ns = min((s for s, _ in spans), default=None)
+        self.end_ns = max((e for _, e in spans), default=None)
+        wanted = {t if t.startswith("/") else "/" + t for t in p["topics"] if t}
+        if unknown := sorted(wanted - infos.keys()):
+            raise NodeConfigError(f"topics {unknown} are not in {', '.join(self.bags)}; "
+                                  f"recorded topics: {sorted(infos)}")
+        bag_clock = infos.get(CLOCK_TOPIC)
+        selected = {t for t in infos if not wanted or t in wanted}
+        if p["clock"] and bag_clock is not None:
+            if bag_clock.type_name != CLOCK_TYPE:
+                raise BagError(f"{first_bag[CLOCK_TOPIC]}: topic {CLOCK_TOPIC} is {bag_clock.type_name}, not "
+                               f"{CLOCK_TYPE}; play it with clock:=false")
+            selected.add(CLOCK_TOPIC)  # the recorded clock is the clock
+        self.generate_clock = p["clock"] and bag_clock is None
+        self.clock_period = 1.0 / p["clock_hz"] if self.generate_clock else math.inf
+
+        self.topics = {t: infos[t] for t in sorted(selected)}
+        self.publishers: dict[str, Any] = {}
+        for topic, info in self.topics.items():
+            try:
+                node.msg(info.type_name)
+            except ValueError as exc:
+                raise BagError(f"{first_bag[topic]}: topic {topic}: {exc}") from None
+            self.publishers[topic] = node.create_publisher(info.type_name, topic, playback_qos(info))
+        self.clock_pub = node.create_publisher(CLOCK_TYPE, CLOCK_TOPIC, DEFAULT_QOS) if self.generate_clock else None
+
+        self.total = sum(info.message_count for info in self.topics.values())  # per pass
+        self.published = 0  # messages published, all passes
+        self.passes = 0
+        self.bag_time_ns: int | None = None  # stamp of the last message published
+        self.finished = False
+        self.exit_code = 0
+        self._stop = threading.Event()
+        node.logger.info("playing %d messages on %d topics from %s at rate %g%s%s", self.total, len(self.topics),
+                         ", ".join(self.bags), self.rate, ", looping" if self.loop else "",
+                         ", publishing /clock" if self.generate_clock else "")
+        if progress is not None:
+            node.create_timer(progress_period, lambda: progress(self))
+        self._thread = threading.Thread(target=self._run, name="player", daemon=True)
+        self._thread.start()
+
+    # -- the playing thread ----------------------------------------------------------------
+    def _messages(self) -> Iterator[tuple[int, int, str, str, str, bytes]]:
+        """(stamp, bag index, bag, topic, type, cdr) of all bags in stamp order."""
+        topics = list(self.topics)
+        streams = [((t, i, bag, topic, type_name, data) for topic, type_name, t, data in read_messages(bag, topics))
+                   for i, bag in enumerate(self.bags)]
+        return heapq.merge(*streams, key=lambda m: (m[0], m[1]))
+
+    def _run(self) -> None:
+        log = self.node.logger
+        wall0 = time.monotonic()
+        try:
+            if self._stop.wait(self.delay):
+                return
+            while not self._stop.is_set():
+                self.passes += 1
+                if self.loop:
+                    log.info("playing pass %d", self.passes)
+                if not self._play_once() or not self.loop:
+                    break
+            log.info("played %d messages on %d topics in %d pass(es) over %.1f s (rate %g)%s", self.published,
+                     len(self.topics), self.passes, time.monotonic() - wall0 - self.delay, self.rate,
+                     ", stopped early" if self._stop.is_set() else "")
+        except BagError as exc:
+            log.error("error: %s", exc)
+            self.exit_code = 2
+        except Exception:  # a bug: say so, with the traceback, and exit non-zero
+            log.exception("playing the bags failed")
+            self.exit_code = 1
+        finally:
+            self.finished = True
+
+    def _play_once(self) -> int:
+        """One pass through the bags; the number of messages published (0 when stopped early)."""
+        start_ns = start_wall = None
+        self._next_clock = time.monotonic() if self.clock_pub is not None else math.inf
+        count = 0
+        for t, _i, bag, topic, type_name, data in self._messages():
+            if start_wall is None:
+                start_ns, start_wall = t, time.monotonic()
+            try:
+                msg = self.node.from_cdr(type_name, data)
+            except Exception as exc:
+                raise BagError(f"{bag}: the message on {topic} at {t} ns does not decode as {type_name} "
+                               f"({type(exc).__name__}: {exc})") from None
+            if not self._wait_until(t, start_ns, start_wall):
+                return 0
+            self.publishers[topic].publish(msg)
+            self.published += 1
+            self.bag_time_ns = t
+            count += 1
+        return count
+
+    def _wait_until(self, t_ns: int, start_ns: int, start_wall: float) -> bool:
+        """Sleep until bag time ``t_ns`` is due, publishing the generated clock on the way;
+        False if stopped."""
+        due = start_wall + (t_ns - start_ns) / 1e9 / self.rate
+        while True:
+            now = time.monotonic()
+            if self.clock_pub is not None and now >= self._next_clock:
+                bag_now = start_ns + int((now - start_wall) * self.rate * 1e9)
+                self._publish_clock(min(bag_now, t_ns))
+                self._next_clock = max(self._next_clock + self.clock_period, now)
+            if now >= due:
+                return not self._stop.is_set()
+            if self._stop.wait(min(due, self._next_clock) - now):
+                return False
+
+    def _publish_clock(self, t_ns: int) -> None:
+        stamp = self.node.msg(TIME_TYPE)(sec=t_ns // 10**9, nanosec=t_ns % 10**9)
+        self.clock_pub.publish(self.node.msg(CLOCK_TYPE)(clock=stamp))
+
+    def close(self) -> None:
+        """Stop playing (Ctrl-C, SIGTERM) and wait for the playing thread."""
+        self._stop.set()
+        self._thread.join(timeout=10)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_node(lambda mw: PlayerNode(mw), argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -339,43 +339,49 @@ def cmd_plot(args) -> int:
     return 0
 
 
+def _bag_play(args) -> int:
+    """``hdrqn bag play``: the player node in this process."""
+    import math
+
+    from hdrqn_ros.nodes.common import run_node
+    from hdrqn_ros.nodes.player import PlayerNode
+
+    if not (math.isfinite(args.rate) and args.rate > 0):
+        raise UsageError(f"--rate must be > 0, got {args.rate}")
+    if not (math.isfinite(args.delay) and args.delay >= 0):
+        raise UsageError(f"--delay must be >= 0, got {args.delay}")
+    if args.domain_id is not None:
+        if not 0 <= args.domain_id <= 232:
+            raise UsageError(f"--domain-id must be in 0..232, got {args.domain_id}")
+        os.environ["ROS_DOMAIN_ID"] = str(args.domain_id)
+
+    def yaml_float(x: float) -> str:  # "1e-05" is a string in YAML 1.1; "1.0e-05" a float
+        mantissa, e, exponent = repr(float(x)).partition("e")
+        return mantissa + ("" if "." in mantissa else ".0") + e + exponent
+
+    ros = ["-p", f"bag:={json.dumps(args.bags)}", "-p", f"rate:={yaml_float(args.rate)}",
+           "-p", f"loop:={str(args.loop).lower()}", "-p", f"topics:={json.dumps(args.topics or [''])}",
+           "-p", f"clock:={str(not args.no_clock).lower()}", "-p", f"delay:={yaml_float(args.delay)}"]
+    if args.interface:
+        ros += ["-p", f"dds_interface:={json.dumps(args.interface)}"]
+
+    def progress(player) -> None:
+        if player.bag_time_ns is None or player.start_ns is None:
+            return
+        done = max(0, player.published - (player.passes - 1) * player.total)
+        print(f"bag play: pass {player.passes}, {done}/{player.total} messages, bag time "
+              f"{(player.bag_time_ns - player.start_ns) / 1e9:.2f}/{(player.end_ns - player.start_ns) / 1e9:.2f} s",
+              file=sys.stderr, flush=True)
+
+    return run_node(lambda mw: PlayerNode(mw, progress=progress), ["hdrqn bag play", "--ros-args", *ros])
+
+
 def cmd_bag(args) -> int:
     from hdrqn_ros.recording.bag import BagError, bag_summary, repair_bag
+    from hdrqn_ros.recording.transitions import episode_summary
 
     if args.bag_command == "play":
-        import math
-
-        from hdrqn_ros.nodes.common import run_node
-        from hdrqn_ros.nodes.player import PlayerNode
-
-        if not (math.isfinite(args.rate) and args.rate > 0):
-            raise UsageError(f"--rate must be > 0, got {args.rate}")
-        if not (math.isfinite(args.delay) and args.delay >= 0):
-            raise UsageError(f"--delay must be >= 0, got {args.delay}")
-        if args.domain_id is not None:
-            if not 0 <= args.domain_id <= 232:
-                raise UsageError(f"--domain-id must be in 0..232, got {args.domain_id}")
-            os.environ["ROS_DOMAIN_ID"] = str(args.domain_id)
-
-        def yaml_float(x: float) -> str:  # "1e-05" is a string in YAML 1.1; "1.0e-05" a float
-            mantissa, e, exponent = repr(float(x)).partition("e")
-            return mantissa + ("" if "." in mantissa else ".0") + e + exponent
-
-        ros = ["-p", f"bag:={json.dumps(args.bags)}", "-p", f"rate:={yaml_float(args.rate)}",
-               "-p", f"loop:={str(args.loop).lower()}", "-p", f"topics:={json.dumps(args.topics or [''])}",
-               "-p", f"clock:={str(not args.no_clock).lower()}", "-p", f"delay:={yaml_float(args.delay)}"]
-        if args.interface:
-            ros += ["-p", f"dds_interface:={json.dumps(args.interface)}"]
-
-        def progress(player) -> None:
-            if player.bag_time_ns is None or player.start_ns is None:
-                return
-            done = max(0, player.published - (player.passes - 1) * player.total)
-            print(f"bag play: pass {player.passes}, {done}/{player.total} messages, bag time "
-                  f"{(player.bag_time_ns - player.start_ns) / 1e9:.2f}/{(player.end_ns - player.start_ns) / 1e9:.2f} s",
-                  file=sys.stderr, flush=True)
-
-        return run_node(lambda mw: PlayerNode(mw, progress=progress), ["hdrqn bag play", "--ros-args", *ros])
+        return _bag_play(args)
     try:
         if args.bag_command == "repair":
             report = repair_bag(args.bag)
@@ -384,6 +390,7 @@ def cmd_bag(args) -> int:
                   f"{report.bytes_dropped} bytes of incomplete data")
             return 0
         summary = bag_summary(args.bag)
+        summary["episodes"] = episode_summary(args.bag)
     except BagError as exc:
         raise UsageError(str(exc)) from None
     if args.json:
@@ -394,6 +401,19 @@ def cmd_bag(args) -> int:
     width = max((len(t) for t in summary["topics"]), default=5)
     for topic, entry in sorted(summary["topics"].items()):
         print(f"  {topic:{width}s}  {entry['count']:8d}  {entry['type']}")
+    groups = summary["episodes"]
+    if groups:
+        print("episodes (complete; mean return, success rate, mean steps; incomplete):")
+        width = max(len(g) for g in groups)
+        for group, e in sorted(groups.items()):
+            stats = ("-" if not e["episodes"] else
+                     f"return {e['mean_return']:7.3f}  success {e['success_rate']:.2f}  steps {e['mean_steps']:6.1f}")
+            print(f"  {group:{width}s}  {e['episodes']:6d}  {stats}  ({e['incomplete']} incomplete)")
+        n = sum(e["episodes"] for e in groups.values())
+        if len(groups) > 1 and n:
+            ret = sum(e["mean_return"] * e["episodes"] for e in groups.values() if e["episodes"]) / n
+            succ = sum(e["success_rate"] * e["episodes"] for e in groups.values() if e["episodes"]) / n
+            print(f"  {'all':{width}s}  {n:6d}  return {ret:7.3f}  success {succ:.2f}")
     return 0
 
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
 import sys
 import time
 from itertools import count
@@ -19,6 +20,8 @@ from hdrqn_ros.middleware.messages import typestore, to_rosbags
 from hdrqn_ros.middleware.port import LATCHED_QOS, QoS
 from hdrqn_ros.protocol import wire as P
 from hdrqn_ros.protocol.wire import obs_digest
+from hdrqn_ros.recording.bag import BagWriter
+from hdrqn_ros.recording.transitions import GROUP_TOPICS, read_episodes
 from hdrqn_ros.supervisor import ProcessSpec, Supervisor
 
 ENV = "hdrqn/GridWorld-2Goals-v0"
@@ -53,7 +56,8 @@ def read_jsonl(path: Path) -> list[dict]:
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 
 
-def start_graph(tmp_path: Path, algo: str = "hdrqn-v2", episodes: int = 8, respawn: bool = False) -> Supervisor:
+def start_graph(tmp_path: Path, algo: str = "hdrqn-v2", episodes: int = 8, respawn: bool = False,
+                learner: dict | None = None) -> Supervisor:
     cfg = build_config([], algo=algo, env=ENV, episodes=episodes, seed=3, learning_starts=60, checkpoint_every=2,
                        eval_episodes=4, update_every=5, sub={"batch_size": 2}, meta={"batch_size": 2})
     run_dir = tmp_path / "run"
@@ -62,7 +66,7 @@ def start_graph(tmp_path: Path, algo: str = "hdrqn-v2", episodes: int = 8, respa
     config.write_text(json.dumps(cfg.model_dump()))
     params = write_params(cfg, run_dir, 1, config, extra={
         "environment": {"step_log": str(tmp_path / "env_steps.jsonl")},
-        "learner": {"transition_log": str(tmp_path / "transitions.jsonl"), "weights_every": 5},
+        "learner": {"transition_log": str(tmp_path / "transitions.jsonl"), "weights_every": 5, **(learner or {})},
         "meta_controller": {"subgoal_table": str(CONFIG / "nav2" / "subgoals.yaml")},
         "sub_controller": {"action_table": str(CONFIG / "nav2" / "actions.yaml")}})
     sup = Supervisor(graph_processes(cfg, params, 1, respawn=respawn), log_dir=tmp_path / "logs", stop_timeout_s=5)
@@ -130,17 +134,30 @@ def test_payload_bytes_equal_rosbags_cdr(domain):
         mw.shutdown()
 
 
+def record_like_ros2_bag(node, writer: BagWriter, topics: dict[str, str]) -> None:
+    """What ``ros2 bag record -s mcap`` does: subscribe, write each sample's CDR at receipt time."""
+    for topic, type_name in topics.items():
+        conn = writer.add_topic(topic, type_name, depth=P.STEP_QOS.depth)
+        node.create_subscription(type_name, topic, lambda m, c=conn: writer.write(c, time.time_ns(), node.to_cdr(m)),
+                                 P.STEP_QOS)
+
+
 def test_graph_trains_and_transitions_align(domain, tmp_path):
-    """Also: the Nav2 adapters publish a goal_pose per option and a cmd_vel per action."""
-    sup = start_graph(tmp_path, episodes=8)
+    """Also: the Nav2 adapters publish a goal_pose per option and a cmd_vel per action; the
+    learner records what it receives, and a ros2-bag-record-style recorder records the topics."""
+    learner_bag, ros2_bag = tmp_path / "learner-bag", tmp_path / "ros2-bag"
+    sup = start_graph(tmp_path, episodes=8, learner={"record": str(learner_bag)})
     mw = CycloneMiddleware([])
     goals, twists, subgoals = [], [], []
+    writer = BagWriter(ros2_bag)
     try:
         node = mw.create_node("nav_probe")
         node.create_subscription(P.POSE_STAMPED, "/goal_pose", goals.append)
         node.create_subscription("geometry_msgs/msg/Twist", "/cmd_vel", twists.append)
         node.create_subscription(P.INTS, "/subgoal", lambda m: subgoals.append(P.read_record(m, P.SUBGOAL_FIELDS,
                                                                                                np.int64)))
+        record_like_ros2_bag(node, writer, {**{f"/{t}": ty for t, ty in GROUP_TOPICS.items()},
+                                            "/clock": P.CLOCK_TYPE})
 
         def finished():
             mw.spin(timeout_s=0.05)
@@ -149,7 +166,9 @@ def test_graph_trains_and_transitions_align(domain, tmp_path):
         wait_for(finished, 150, "the learner to finish", sup)
     finally:
         mw.shutdown()
+        writer.close()
         sup.stop()
+    check_recordings(tmp_path, learner_bag, ros2_bag)
     assert twists and goals and len(twists) > len(goals)
     assert {round(g.pose.position.x, 3) for g in goals} <= {1.0, 3.5}  # poses from config/nav2/subgoals.yaml
     assert any(s["new_option"] for s in subgoals)
@@ -161,6 +180,29 @@ def test_graph_trains_and_transitions_align(domain, tmp_path):
     check_transitions_match_env(transitions, env_rows)
     sub_log = (tmp_path / "logs" / "graph_sub_controller.log").read_text()
     assert "acting with the learner's sub weights of update 0" in sub_log
+
+
+def check_recordings(tmp_path: Path, learner_bag: Path, ros2_bag: Path) -> None:
+    """Both bags give the same episodes; the learner node trains offline from its bag."""
+    cfg = build_config([tmp_path / "run" / "config-in.yaml"])
+    episodes = {}
+    for bag in (learner_bag, ros2_bag):
+        episodes[bag] = {ep.frames.tobytes(): (ep, meta) for _, ep, meta, _ in read_episodes([bag], cfg, 2)}
+    assert len(episodes[learner_bag]) >= 8
+    shared = episodes[learner_bag].keys() & episodes[ros2_bag].keys()
+    assert len(shared) >= 6  # the test's recorder may join after the first episode began
+    for frames in shared:
+        (a, am), (b, bm) = episodes[learner_bag][frames], episodes[ros2_bag][frames]
+        assert all(np.array_equal(a.fields[k], b.fields[k]) for k in a.fields)
+        assert np.array_equal(am.frames, bm.frames) and np.array_equal(am.fields["action"], bm.fields["action"])
+    out = tmp_path / "offline"
+    run = subprocess.run([sys.executable, "-m", "hdrqn_ros.nodes.learner", "--ros-args", "-p",
+                          f"config:={tmp_path / 'run' / 'config-in.yaml'}", "-p", "groups:=['']", "-p",
+                          f"bags:=['{learner_bag}']", "-p", "offline_updates:=10", "-p", f"run_dir:={out}",
+                          "-p", "episodes:=8", "-p", "seed:=3"], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["prefilled"]["episodes"] == len(episodes[learner_bag]) and summary["updates"] == 10
 
 
 @pytest.mark.parametrize("algo", ["hdrqn-v1", "dqn"])

@@ -84,6 +84,8 @@ def _add_up(sub) -> None:
     p.add_argument("--interface", help="network interface for DDS (default: loopback only)")
     p.add_argument("--no-respawn", action="store_true", help="do not restart nodes that exit unexpectedly")
     p.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
+    p.add_argument("--record", metavar="BAG_DIR",
+                   help="the learner records every message it takes from the groups to this new bag (rosbag2 MCAP)")
 
 
 def _add_eval(sub) -> None:
@@ -259,7 +261,10 @@ def cmd_up(args) -> int:
     (run_dir / "summary.json").unlink(missing_ok=True)
     config_file = run_dir / "graph-config.yaml"
     config_file.write_text(yaml.safe_dump(cfg.model_dump(), sort_keys=False))
-    params = write_params(cfg, run_dir, args.groups, config_file, interface=args.interface)
+    if args.record and os.path.lexists(args.record):
+        raise UsageError(f"{args.record} already exists; refusing to overwrite a recording")
+    extra = {"learner": {"record": str(Path(args.record).resolve())}} if args.record else None
+    params = write_params(cfg, run_dir, args.groups, config_file, interface=args.interface, extra=extra)
     env = {}
     if args.domain_id is not None:
         if not 0 <= args.domain_id <= 232:

@@ -14,6 +14,7 @@ empty keeps the params file's value (or the node's default). Examples::
     ros2 launch hdrqn_ros train.launch.py
     ros2 launch hdrqn_ros train.launch.py algo:=hdrqn-v1 groups:=4 episodes:=5000 run_dir:=runs/v1
     ros2 launch hdrqn_ros train.launch.py params_file:=/path/to/my_train.yaml respawn:=false
+    ros2 launch hdrqn_ros train.launch.py record:=bags/graph-run
 
 When the learner exits, the whole launch is shut down: always with ``respawn:=false``;
 with ``respawn:=true`` (default) when it exits with 0 (training finished, or it was
@@ -77,7 +78,7 @@ def _graph(context):
     episodes = int_arg(context, "episodes", 1)
     if episodes is not None:
         learner_params["episodes"] = episodes
-    for name in ("run_dir", "config"):
+    for name in ("run_dir", "config", "record"):
         if arg(context, name):
             learner_params[name] = arg(context, name)
     learner = Node(package=PACKAGE, executable="learner", name="learner", namespace="/",
@@ -118,6 +119,9 @@ def generate_launch_description() -> LaunchDescription:
         DeclareLaunchArgument("config", default_value="",
                               description="training config YAML for the learner, as hdrqn train --config "
                                           "(empty: params file)"),
+        DeclareLaunchArgument("record", default_value="",
+                              description="bag directory: the learner records every message it takes from the "
+                                          "groups (rosbag2 MCAP; empty: params file, else no recording)"),
         DeclareLaunchArgument("respawn", default_value="true",
                               description="restart nodes that exit (the learner resumes from run_dir)"),
         OpaqueFunction(function=_graph),

@@ -395,9 +395,12 @@ def cmd_bag(args) -> int:
                   f"{report.bytes_dropped} bytes of incomplete data")
             return 0
         summary = bag_summary(args.bag)
-        summary["episodes"] = episode_summary(args.bag)
     except BagError as exc:
         raise UsageError(str(exc)) from None
+    try:
+        summary["episodes"] = episode_summary(args.bag)
+    except BagError as exc:  # env_step topics of another layout: the rest of the summary still holds
+        summary["episodes"], summary["episodes_error"] = {}, str(exc)
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0
@@ -407,6 +410,8 @@ def cmd_bag(args) -> int:
     for topic, entry in sorted(summary["topics"].items()):
         print(f"  {topic:{width}s}  {entry['count']:8d}  {entry['type']}")
     groups = summary["episodes"]
+    if "episodes_error" in summary:
+        print(f"episodes: not readable as hdrqn transitions ({summary['episodes_error']})")
     if groups:
         print("episodes (complete; mean return, success rate, mean steps; incomplete):")
         width = max(len(g) for g in groups)

@@ -197,7 +197,6 @@ class BagReadStats:
     """What :func:`read_episodes` found; counts per bag directory."""
 
     episodes: dict[str, int] = field(default_factory=dict)
-    transitions: dict[str, int] = field(default_factory=dict)
     incomplete_episodes: dict[str, int] = field(default_factory=dict)  # cut short by the bag's end or gaps
 
 
@@ -267,7 +266,6 @@ def read_episodes(paths, cfg: TrainConfig, num_subgoals: int, stats: BagReadStat
             while finished:
                 stats.episodes[key] = stats.episodes.get(key, 0) + 1
                 yield finished.pop(0)
-        stats.transitions[key] = sum(a.transitions for a in assemblers)
         stats.incomplete_episodes[key] = sum(a.lost_episodes + a.open for a in assemblers)
 
 

@@ -119,14 +119,8 @@ class EnvironmentNode:
         self.steps += 1
         self.t += 1
         self.obs = step.obs[0]
-        decision = step.at_subgoal[0] >= 0 or step.life_lost[0]
         self.step_record = {"prev_key": prev_key, "env_steps": self.steps, "episode": self.episode, "t": self.t,
-                            "action": action, "extrinsic": float(step.extrinsic[0]),
-                            "classical": float(step.classical[0]), "terminated": bool(step.terminated[0]),
-                            "truncated": bool(step.truncated[0]), "at_subgoal": int(step.at_subgoal[0]),
-                            "collected": bool(step.collected[0]), "hit_obstacle": bool(step.hit_obstacle[0]),
-                            "life_lost": bool(step.life_lost[0]), "success": bool(step.success[0]),
-                            "decision_point": bool(decision and not step.done[0])}
+                            "action": action, **P.step_outcome(step, 0)}
         self._new_key()
         if self.step_log is not None:
             self.step_log.write(json.dumps({**self.step_record, "key": self.key, "next_obs": P.obs_digest(self.obs),

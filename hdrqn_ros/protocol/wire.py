@@ -208,6 +208,18 @@ def check_index(value: float, n: int, what: str, allow_none: bool = False) -> in
 
 
 
+def step_outcome(step: StepBatch, i: int) -> dict:
+    """The ``env_step`` fields that say what stepping environment ``i`` of ``step`` did
+    (``extrinsic`` ... ``decision_point``; the caller adds the keys, counters and action)."""
+    done = bool(step.terminated[i] or step.truncated[i])
+    return {"extrinsic": float(step.extrinsic[i]), "classical": float(step.classical[i]),
+            "terminated": bool(step.terminated[i]), "truncated": bool(step.truncated[i]),
+            "at_subgoal": int(step.at_subgoal[i]), "collected": bool(step.collected[i]),
+            "hit_obstacle": bool(step.hit_obstacle[i]), "life_lost": bool(step.life_lost[i]),
+            "success": bool(step.success[i]),
+            "decision_point": bool((step.at_subgoal[i] >= 0 or step.life_lost[i]) and not done)}
+
+
 def step_batch(step: dict, obs: np.ndarray | None = None) -> StepBatch:
     """A one-row :class:`StepBatch` from an ``env_step`` record (``obs``: (44, 44, 3) or none)."""
     def col(name, dtype):

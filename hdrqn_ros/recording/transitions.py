@@ -154,14 +154,7 @@ class TransitionRecorder:
             e.key += STEP_PERIOD_NS
             e.t += 1
             e.env_steps += 1
-            done = bool(env.terminated[i] or env.truncated[i])
-            decision = (env.at_subgoal[i] >= 0 or env.life_lost[i]) and not done
-            self._step_record(i, {
-                "prev_key": prev, "action": int(rec.action[i]), "extrinsic": float(env.extrinsic[i]),
-                "classical": float(env.classical[i]), "terminated": bool(env.terminated[i]),
-                "truncated": bool(env.truncated[i]), "at_subgoal": int(env.at_subgoal[i]),
-                "collected": bool(env.collected[i]), "hit_obstacle": bool(env.hit_obstacle[i]),
-                "life_lost": bool(env.life_lost[i]), "success": bool(env.success[i]), "decision_point": decision})
+            self._step_record(i, {"prev_key": prev, "action": int(rec.action[i]), **P.step_outcome(env, i)})
             if self.spec.hierarchical:
                 reached = int(env.at_subgoal[i] == rec.subgoal[i])
                 self._put(i, P.CRITIC, P.make_record(m, P.FLOATS, P.CRITIC_FIELDS, [
@@ -169,7 +162,7 @@ class TransitionRecorder:
             self._put(i, P.OBSERVATION, P.make_image(m, e.key, env.obs[i], FRAME_ID))
             a, b = (float(v) for v in env.agent_pos[i])
             self._put(i, P.POSE, P.make_pose(m, e.key, FRAME_ID, *((b, a) if self.grid else (a, b))))
-            if done:
+            if env.done[i]:
                 e.open = False
                 e.episode += 1
 

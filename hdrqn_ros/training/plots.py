@@ -41,8 +41,9 @@ def run_label(run: Path) -> str:
     return run.name
 
 
-def plot_runs(runs: list[Path], out: Path, window: int = 200, labels: dict[str, str] | None = None) -> Path:
-    """Draw the curves of ``runs`` into ``out`` (PNG); returns ``out``.
+def plot_runs(runs: list[Path], out: Path, window: int = 200, labels: dict[str, str] | None = None,
+              title: str = "") -> Path:
+    """Draw the curves of ``runs`` into ``out`` (PNG); returns ``out``. ``title`` heads the figure.
 
     Raises ``FileNotFoundError`` when a run has no ``train.csv``.
     """
@@ -91,7 +92,7 @@ def plot_runs(runs: list[Path], out: Path, window: int = 200, labels: dict[str, 
     ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
     axes.flat[0].legend(loc="best", fontsize=8)
-    fig.suptitle(f"moving average over {window} episodes; band: min-max over runs")
+    fig.suptitle((f"{title}\n" if title else "") + f"moving average over {window} episodes; band: min-max over runs")
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=90)

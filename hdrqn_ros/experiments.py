@@ -189,7 +189,16 @@ def run_experiment(exp: Experiment, runs: list[RunSpec], out: Path, episodes: in
 
         bar = tqdm(total=target * len(runs), unit="ep", dynamic_ncols=True, desc=exp.name)
     running: dict[str, subprocess.Popen] = {}
+
+    def show() -> None:
+        if bar is not None:
+            bar.n = sum(min(target, episodes_logged(out / r.name)) for r in runs)
+            bar.set_postfix_str(f"running: {', '.join(running) or '-'}; done {len(results)}/{len(runs)}",
+                                refresh=False)
+            bar.refresh()
+
     try:
+        show()
         while pending or running:
             while pending and len(running) < jobs:
                 r = pending.pop(0)
@@ -208,11 +217,7 @@ def run_experiment(exp: Experiment, runs: list[RunSpec], out: Path, episodes: in
                     if p.returncode != 0:
                         print(f"{exp.name}: run {name} failed (exit {p.returncode}); see {out / name}.log",
                               file=sys.stderr)
-            if bar is not None:
-                bar.n = sum(min(target, episodes_logged(out / r.name)) for r in runs)
-                bar.set_postfix_str(f"running: {', '.join(running) or '-'}; done {len(results)}/{len(runs)}",
-                                    refresh=False)
-                bar.refresh()
+            show()
             if running:
                 time.sleep(poll_s)
     except KeyboardInterrupt:

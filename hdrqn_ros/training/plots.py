@@ -66,7 +66,7 @@ def plot_runs(runs: list[Path], out: Path, window: int = 200, labels: dict[str, 
             evals[label].append(ev)
 
     fig, axes = plt.subplots(2, 3, figsize=(15, 8))
-    for ax, (key, title) in zip(axes.flat, PANELS):
+    for ax, (key, panel) in zip(axes.flat, PANELS):
         for i, (label, tables) in enumerate(groups.items()):
             n = min(len(t["episode"]) for t in tables)
             skip = min(window // 10, n - 1)  # the first few averages are over a handful of episodes
@@ -76,7 +76,7 @@ def plot_runs(runs: list[Path], out: Path, window: int = 200, labels: dict[str, 
             ax.plot(x, curves.mean(0), color=color, label=f"{label} (n={len(tables)})")
             if len(tables) > 1:
                 ax.fill_between(x, curves.min(0), curves.max(0), color=color, alpha=0.2)
-        ax.set_title(title)
+        ax.set_title(panel)
         ax.set_xlabel("episode")
         ax.grid(alpha=0.3)
     ax = axes.flat[5]

@@ -96,7 +96,7 @@ def markdown_table(rows: list[dict]) -> str:
 
 
 def report_experiment(exp_dir: Path, out_dir: Path | None = None, window: int = 200) -> tuple[list[Path], str]:
-    """Draw one figure per thesis figure of the experiment and write ``table.md``.
+    """Draw one figure per thesis figure of the experiment and write ``exp_dir/table.md``.
 
     Returns (figure paths, the Markdown table). Figures go to ``out_dir`` (default ``exp_dir``).
     """
@@ -115,5 +115,5 @@ def report_experiment(exp_dir: Path, out_dir: Path | None = None, window: int = 
         paths.append(plot_runs([exp_dir / r["dir"] for r in runs], out, window=window, labels=labels,
                                title=f"{figure}: {title}" if title else figure))
     table = markdown_table(experiment_rows(exp_dir))
-    (out_dir / "table.md").write_text(f"# {manifest['title']}\n\n{table}\n")
+    (exp_dir / "table.md").write_text(f"# {manifest['title']}\n\n{table}\n")
     return paths, table

@@ -184,7 +184,10 @@ def _config_from_args(args, base: dict | None = None, **flags):
     overrides = parse_set(args.set)
     if args.view is not None:
         view = args.view if args.view == "full" else _int(args.view, "--view")
-        overrides.setdefault("env_kwargs", {})["view"] = view
+        env_kwargs = overrides.setdefault("env_kwargs", {})
+        if not isinstance(env_kwargs, dict):
+            raise UsageError(f"--view needs env_kwargs to be a mapping, got env_kwargs={env_kwargs!r}")
+        env_kwargs["view"] = view
     files = list(args.config)
     run_dir = Path(args.out)
     if args.resume and not files and (run_dir / "config.yaml").exists():
@@ -217,8 +220,8 @@ def cmd_train(args) -> int:
     if args.record:
         from hdrqn_ros.recording.transitions import TransitionRecorder
 
-        if args.record_split_mb <= 0:
-            raise UsageError(f"--record-split-mb must be > 0, got {args.record_split_mb}")
+        if not 0 < args.record_split_mb < 2**20:  # also NaN and inf
+            raise UsageError(f"--record-split-mb must be > 0 and < 1048576 (1 TiB), got {args.record_split_mb}")
         sink = TransitionRecorder(args.record, cfg, cfg.num_envs, split_bytes=int(args.record_split_mb * 2**20),
                                   source="hdrqn train")
         print(f"recording transitions to {sink.path}", file=sys.stderr)
@@ -524,7 +527,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return COMMANDS[args.command](args)
-    except (UsageError, ConfigError, CheckpointError, BagError, ValueError, FileNotFoundError) as exc:
+    except (UsageError, ConfigError, CheckpointError, BagError, ValueError, OSError) as exc:
         if os.environ.get("HDRQN_DEBUG"):
             raise
         print(f"hdrqn {args.command}: error: {exc}", file=sys.stderr)

@@ -5,13 +5,14 @@ wrong type is a :class:`ConfigError` naming the key.
 """
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from hdrqn_ros.yaml_files import read_mapping
+from hdrqn_ros.yaml_files import read_mapping, safe_load
 
 ALGOS = ("hdrqn-v2", "hdrqn-v1", "hdqn", "drqn", "dqn")
 Algo = Literal["hdrqn-v2", "hdrqn-v1", "hdqn", "drqn", "dqn"]
@@ -87,13 +88,42 @@ class TrainConfig(_Strict):
     sub: ControllerConfig = Field(default_factory=_sub_defaults)
     meta: ControllerConfig = Field(default_factory=_meta_defaults)
 
+    @field_validator("device")
+    @classmethod
+    def _device(cls, device: str) -> str:
+        """A device string torch understands ("cpu", "cuda", "cuda:1"...); availability is checked when used."""
+        if device != "cpu":
+            import torch
+
+            try:
+                torch.device(device)
+            except RuntimeError:
+                raise ValueError(f"not a torch device: {device!r} (e.g. cpu, cuda, cuda:1)") from None
+        return device
+
     @model_validator(mode="after")
     def _check(self) -> "TrainConfig":
         from hdrqn_ros.envs.registration import ENV_IDS
 
         if self.env not in ENV_IDS:
             raise ValueError(f"unknown env {self.env!r}; known: {', '.join(ENV_IDS)}")
+        options = set(inspect.signature(batch_class(self.env)).parameters) - {"num_envs"}
+        if unknown := sorted(map(str, set(self.env_kwargs) - options)):
+            raise ValueError(f"env_kwargs {unknown} are not options of {self.env}; its options: {sorted(options)}")
         return self
+
+
+def batch_class(env_id: str) -> type:
+    """The batch core class of a registered ``env_id`` (without building one)."""
+    from hdrqn_ros.envs.registration import MONTEZUMA_IDS
+
+    if env_id in MONTEZUMA_IDS:
+        from hdrqn_ros.envs.montezuma import MontezumaBatch
+
+        return MontezumaBatch
+    from hdrqn_ros.envs.gridworld import GridWorldBatch
+
+    return GridWorldBatch
 
 
 def _merge(base: dict, override: dict) -> dict:
@@ -109,15 +139,19 @@ def _merge(base: dict, override: dict) -> dict:
 def parse_set(items: list[str]) -> dict[str, Any]:
     """``["sub.seq_len=12", "env_kwargs.view=3"]`` -> nested dict; values parsed as YAML.
 
-    Raises :class:`ConfigError` for an item without ``=``.
+    Raises :class:`ConfigError` for an item without ``=`` or whose first key is not a
+    :class:`TrainConfig` field.
     """
     out: dict[str, Any] = {}
     for item in items:
         key, sep, raw = item.partition("=")
         if not sep or not key.strip():
             raise ConfigError(f"--set expects KEY=VALUE (e.g. sub.seq_len=12), got {item!r}")
+        if (root := key.strip().split(".")[0]) not in TrainConfig.model_fields:
+            raise ConfigError(f"--set {item!r}: unknown config key {root!r}; "
+                              f"known: {', '.join(TrainConfig.model_fields)}")
         try:
-            value = yaml.safe_load(raw)
+            value = safe_load(raw)
         except yaml.YAMLError:
             value = raw
         node = out

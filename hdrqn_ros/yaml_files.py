@@ -1,4 +1,5 @@
-"""Reading a YAML file whose top level must be a mapping, with errors that name the file."""
+"""Reading YAML safely: every failure on bad text is a :class:`yaml.YAMLError`, and files
+whose top level must be a mapping get errors that name the file."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -6,15 +7,31 @@ from pathlib import Path
 import yaml
 
 
+def safe_load(text: str):
+    """``yaml.safe_load(text)``, raising only :class:`yaml.YAMLError`: PyYAML's constructors
+    also raise ValueError (``2001-13-01``, ``!!int x``), KeyError (``!!bool maybe``),
+    AttributeError (``!!timestamp x``) and, for deep nesting, RecursionError."""
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError:
+        raise
+    except RecursionError:
+        raise yaml.YAMLError("nested too deeply") from None
+    except (ValueError, KeyError, AttributeError, TypeError, OverflowError) as exc:
+        raise yaml.YAMLError(f"cannot construct a value: {type(exc).__name__}: {exc}") from None
+
+
 def read_mapping(path: str | Path, error: type[Exception], what: str = "", empty_ok: bool = False) -> dict:
     """The mapping in YAML file ``path``; ``error`` (e.g. ``ConfigError``) names the file and
-    the problem: unreadable, not YAML, or not a mapping (an empty file is ``{}`` when
-    ``empty_ok``). ``what`` describes the file in the unreadable case ("config ", ...)."""
+    the problem: unreadable, not UTF-8, not YAML, or not a mapping (an empty file is ``{}``
+    when ``empty_ok``). ``what`` describes the file in the unreadable case ("config ", ...)."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = safe_load(path.read_text(encoding="utf-8"))
     except OSError as exc:
         raise error(f"cannot read {what}{path}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise error(f"{path} is not UTF-8 text: {exc}") from None
     except yaml.YAMLError as exc:
         raise error(f"{path} is not valid YAML: {exc}") from None
     if data is None and empty_ok:

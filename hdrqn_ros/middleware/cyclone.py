@@ -32,7 +32,7 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
-from hdrqn_ros.middleware.messages import message_class
+from hdrqn_ros.middleware.messages import DecodeError, decode, message_class
 from hdrqn_ros.middleware.port import DEFAULT_QOS, Middleware, Node, QoS
 from hdrqn_ros.middleware.ros_args import check_parameter_type, remap_and_resolve, split_ros_args
 
@@ -106,9 +106,9 @@ class _Subscription:
                 self._reject(f"{len(data)} B exceeds the {limit} B message limit")
                 continue
             try:
-                out.append(self.cls.deserialize(data))
-            except Exception as exc:  # a peer sent bytes that do not decode as this type
-                self._reject(f"cannot decode as {self.cls.__ros_type__} ({type(exc).__name__})")
+                out.append(decode(self.cls, data))
+            except DecodeError as exc:  # a peer sent bytes that do not decode as this type
+                self._reject(str(exc))
         return out
 
     def _reject(self, why: str) -> None:
@@ -144,7 +144,8 @@ class CycloneNode(Node):
         return msg.serialize(use_version_2=False)
 
     def from_cdr(self, type_name: str, data: bytes) -> Any:
-        return message_class(type_name).deserialize(bytes(data), has_header=True)
+        """:class:`~hdrqn_ros.middleware.messages.DecodeError` (a ValueError) for bytes that do not decode."""
+        return decode(message_class(type_name), data)
 
     @property
     def logger(self) -> logging.Logger:

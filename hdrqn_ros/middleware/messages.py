@@ -12,6 +12,7 @@ copy instead of Python's element-by-element path (about 100x faster for an image
 from __future__ import annotations
 
 import dataclasses
+import struct
 import threading
 from functools import lru_cache
 from typing import Any
@@ -52,6 +53,27 @@ def _split(type_name: str) -> tuple[str, str, str]:
     if len(parts) != 3 or not all(parts):
         raise ValueError(f"message type must look like 'pkg/msg/Type', got {type_name!r}")
     return parts[0], parts[1], parts[2]
+
+
+class DecodeError(ValueError):
+    """CDR bytes that are not a sample of the expected message type (truncated, garbled)."""
+
+
+_DECODE_FAILURES = (struct.error, ValueError)
+"""What cyclonedds' deserializer raises on bytes that do not fit the type: a read past the
+end (struct.error), bad UTF-8 in a string, a sequence longer than the sample (ValueError);
+``test/test_fuzz.py`` feeds it random and mutated samples."""
+
+
+def decode(cls: type, data: bytes) -> Any:
+    """The message of class ``cls`` (from :func:`message_class`) in the CDR ``data``,
+    encapsulation header first; :class:`DecodeError` naming the type if they do not decode."""
+    if len(data) < 4:
+        raise DecodeError(f"{len(data)} B is not a {cls.__ros_type__} sample (shorter than the 4-byte CDR header)")
+    try:
+        return cls.deserialize(bytes(data), has_header=True)
+    except _DECODE_FAILURES as exc:
+        raise DecodeError(f"bytes do not decode as {cls.__ros_type__} ({type(exc).__name__}: {exc})") from None
 
 
 def message_class(type_name: str) -> type:
@@ -141,7 +163,11 @@ class _NumpySequenceMachine(Machine):
             return np.zeros(0, self.dtype)
         buffer.align(self.dtype.itemsize)
         dtype = self.dtype.newbyteorder("<" if buffer.endianness == Endianness.Little else ">")
-        return np.frombuffer(buffer.read_bytes(n * self.dtype.itemsize), dtype).astype(self.dtype, copy=False)
+        raw = buffer.read_bytes(n * self.dtype.itemsize)
+        if len(raw) != n * self.dtype.itemsize:  # the sample ends before the elements it announces
+            raise DecodeError(f"a sequence of {n} {self.dtype} values runs past the end of the sample "
+                              f"({len(raw)} bytes left)")
+        return np.frombuffer(raw, dtype).astype(self.dtype, copy=False)
 
     def key_scan(self):
         return SequenceMachine(PrimitiveMachine(types.uint8)).key_scan()

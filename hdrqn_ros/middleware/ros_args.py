@@ -19,7 +19,7 @@ from typing import Any
 import yaml
 
 from hdrqn_ros.middleware.port import ParameterError, RosArgsError
-from hdrqn_ros.yaml_files import read_mapping
+from hdrqn_ros.yaml_files import read_mapping, safe_load
 
 _FLAGS_WITH_VALUE = {"-p", "--param", "-r", "--remap", "--params-file", "--log-level", "-e", "--enclave"}
 _FLAGS_ALONE = {"--disable-rosout-logs", "--disable-stdout-logs", "--disable-external-lib-logs",
@@ -126,7 +126,7 @@ def _apply_flag(ros: RosArgs, flag: str, value: str) -> None:
 def parse_value(text: str) -> Any:
     """A ``-p`` value in YAML syntax (``5`` int, ``5.0`` float, ``true``, ``[1, 2]``, text)."""
     try:
-        value = yaml.safe_load(text)
+        value = safe_load(text)
     except yaml.YAMLError:
         return text
     return "" if value is None else value

@@ -24,8 +24,11 @@ PARAMETERS = {**ENV_DEFAULTS, "step_period": 0.01, "frame_id": "hdrqn_map", "act
               "wait_for_learner": False, "max_episodes": 0, "step_log": "", "publish_clock": True}
 """``step_period``: simulated seconds per step (the key increment); ``max_episodes``: stop
 after this many episodes (0: run until stopped); ``step_log``: append every step to this
-JSON-lines file (the ground truth that learner transition logs are checked against);
-``publish_clock``: publish ``/clock`` (turn off for all but one group: there is one sim clock)."""
+JSON-lines file (the ground truth that learner transition logs are checked against; each
+row also has ``wall_time``, the wall clock (``time.time()``) just before the step is
+published, and ``action_time``, when the action that made the step arrived, for latency
+measurements: ``benchmarks/bench_load.py``); ``publish_clock``: publish ``/clock`` (turn
+off for all but one group: there is one sim clock)."""
 
 
 class EnvironmentNode:
@@ -49,6 +52,7 @@ class EnvironmentNode:
         self.episode = 0
         self.key = 0
         self.pending_action: int | None = None
+        self.action_time = 0.0  # wall clock when pending_action arrived (step_log)
         self.finished = False
         self.step_log = open(p["step_log"], "a", buffering=1) if p["step_log"] else None
         self.obs = self.batch.reset(seed=p["seed"])[0]
@@ -96,6 +100,7 @@ class EnvironmentNode:
         if rec["key"] != self.key or self.pending_action is not None:
             return  # a stale or repeated reply (e.g. to a re-published step)
         self.pending_action = action
+        self.action_time = time.time()  # wall clock, for the step_log row
         self._step_if_allowed()
 
     def _on_credit(self, msg) -> None:
@@ -124,7 +129,8 @@ class EnvironmentNode:
         self._new_key()
         if self.step_log is not None:
             self.step_log.write(json.dumps({**self.step_record, "key": self.key, "next_obs": P.obs_digest(self.obs),
-                                            "obs": self.obs_digest_before}) + "\n")
+                                            "obs": self.obs_digest_before, "action_time": self.action_time,
+                                            "wall_time": time.time()}) + "\n")
         self._publish()
         if step.done[0]:
             self.episode += 1

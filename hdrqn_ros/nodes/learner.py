@@ -41,9 +41,14 @@ PARAMETERS = {**ENV_DEFAULTS, "config": "", "overrides": [""], "episodes": 1000,
 ``key=value`` items like ``hdrqn train --set``; the parameters ``algo``, ``env``, ``view``,
 ``seed``, ``episodes`` win over both. ``resume``: continue from ``run_dir``'s checkpoint
 when there is one. ``transition_log``: append every assembled transition to this JSON-lines
-file (keys, action, rewards, flags, observation digests: for checking alignment).
+file (keys, action, rewards, flags, observation digests: for checking alignment; and
+``wall_time``, the wall clock when the transition was assembled, for latency measurements).
 ``record``: write every message the learner takes from the groups to this new rosbag2 MCAP
 bag (split every ``record_split_mb`` MB; a restarted learner records to ``<record>-restart<k>``).
+With ``record`` and ``resume``, a restarted learner first refills its replay from the bags
+its earlier lives recorded; an episode is acknowledged (``acked_episodes``/``acked_steps``
+in each group's status) once its messages are flushed to the bag, so a killed learner
+loses no acknowledged transition.
 ``bags``: fill the replay from these bags before training (not counted as this run's
 episodes), then run ``offline_updates`` updates on them before taking the graph's data.
 With no groups (``groups: [""]``) the learner trains offline only: ``offline_updates``
@@ -59,8 +64,10 @@ class GroupAssembler(TransitionAssembler):
 
     def __init__(self, node, namespace: str, learner: Learner, episodes: "queue.Queue", log=None,
                  recorder: "GraphRecorder | None" = None):
-        super().__init__(namespace, learner.cfg, learner.agent.num_subgoals,
-                         lambda *episode: episodes.put(episode), node=node, log=log)
+        super().__init__(namespace, learner.cfg, learner.agent.num_subgoals, self._acknowledge, node=node, log=log)
+        self.episodes, self.graph_recorder = episodes, recorder
+        self.acked_episodes = self.acked_steps = 0
+        self.heard = False  # no credit before the group's first env_step: its start would go unseen
         self.last_credit: tuple | None = None
         inputs = self.inputs()
         conns = recorder.add_group(namespace, list(inputs)) if recorder is not None else {}
@@ -70,10 +77,27 @@ class GroupAssembler(TransitionAssembler):
             node.create_subscription(type_name, self.topic(name), handler, P.STEP_QOS)
         self.credit_pub = node.create_publisher(P.FLOATS, self.topic(P.CREDIT), LATCHED_QOS)
 
+    def _acknowledge(self, *episode) -> None:
+        """A finished episode: make its messages durable in the recording (when recording),
+        count it as acknowledged, and queue it for replay."""
+        if self.graph_recorder is not None and self.graph_recorder.sync():
+            self.acked_episodes += 1
+            self.acked_steps += episode[-1].steps
+        self.episodes.put(episode)
+
+    def received(self, step: dict) -> None:
+        super().received(step)
+        self.heard = True
+
+    def stats(self) -> dict:
+        """The assembler's counters, plus ``acked_episodes``/``acked_steps``: the episodes
+        (and their transitions) already durable in the learner's bag when recording."""
+        return {**super().stats(), "acked_episodes": self.acked_episodes, "acked_steps": self.acked_steps}
+
     def publish_credit(self, window: int, owed_ok: bool, eps: tuple[float, float], epoch: float,
                        force: bool = False) -> None:
         """Publish ``learner_credit`` when the credit or the epsilons changed (or ``force``)."""
-        credit = self.env_steps_seen + window if owed_ok else self.env_steps_seen
+        credit = self.env_steps_seen + window if owed_ok and self.heard else self.env_steps_seen
         values = (credit, round(eps[0], 4), round(eps[1], 4))
         if values == self.last_credit and not force:
             return
@@ -98,6 +122,19 @@ class GraphRecorder:
 
     def add_group(self, namespace: str, topics: list[str]) -> dict[str, int]:
         return self.bag.add_group(namespace, topics)
+
+    def sync(self) -> bool:
+        """End the current chunk and hand it to the OS, so a killed learner loses none of the
+        messages received so far (``hdrqn bag repair`` keeps complete chunks). False when
+        recording has stopped."""
+        if self.failed:
+            return False
+        try:
+            self.bag.sync()
+        except BagError as exc:
+            self.failed = True
+            self.node.logger.error("recording stopped: %s", exc)
+        return not self.failed
 
     def recording(self, connection: int, handler):
         def record_then_handle(msg) -> None:
@@ -142,6 +179,7 @@ class LearnerNode:
         if not bags and not namespaces:
             raise NodeConfigError("nothing to learn from: give environment groups (groups) or bags (bags)")
         self.prefilled = self._prefill(bags)
+        self.recovered = self._recover(p["record"]) if resume and p["record"] else (0, 0)
         self.offline_updates = p["offline_updates"]
         if not namespaces and not self.offline_updates:
             self.offline_updates = max(1, 10 * self.prefilled[1] // cfg.update_every)
@@ -175,6 +213,28 @@ class LearnerNode:
         self.node.logger.info("replay filled from %d bag(s): %d episodes, %d steps", len(bags), episodes, steps)
         if not episodes:
             raise NodeConfigError(f"no complete episode for {self.learner.cfg.algo} in {bags}")
+        return episodes, steps
+
+    def _recover(self, record: str) -> tuple[int, int]:
+        """A resumed learner refills its replay with the episodes its earlier lives recorded
+        (``record``, ``record-restart<k>``; a killed recorder's bag is repaired first), so
+        no acknowledged transition is lost. Returns (episodes, steps)."""
+        from hdrqn_ros.recording.bag import repair_bag
+
+        bags, k = [], 0
+        while Path(path := record if k == 0 else f"{record}-restart{k}").exists():
+            report = repair_bag(path)
+            if report.repaired:
+                self.node.logger.warning("repaired %s: %d messages recovered, %d bytes dropped", path,
+                                         report.messages_recovered, report.bytes_dropped)
+            bags.append(path)
+            k += 1
+        if not bags:
+            return 0, 0
+        items = read_episodes(bags, self.learner.cfg, self.learner.agent.num_subgoals, logger=self.node.logger)
+        episodes, steps = self.learner.prefill(items)
+        self.node.logger.info("recovered %d acknowledged episodes (%d transitions) from %s", episodes, steps,
+                              ", ".join(bags))
         return episodes, steps
 
     # -- the training thread ---------------------------------------------------------------------
@@ -254,7 +314,8 @@ class LearnerNode:
                         "updates": learner.agent.sub.updates,
                         "train_success_last100": float(np.mean([s.success for s in self.recent])) if self.recent
                         else None, "final_eval": final, "groups": {g.ns or "/": g.stats() for g in self.groups},
-                        "prefilled": {"episodes": self.prefilled[0], "steps": self.prefilled[1]}}
+                        "prefilled": {"episodes": self.prefilled[0], "steps": self.prefilled[1]},
+                        "recovered": {"episodes": self.recovered[0], "steps": self.recovered[1]}}
         (learner.run_dir / "summary.json").write_text(json.dumps(self.summary, indent=2))
         self._status()
         self.node.logger.info("done: %s", json.dumps(self.summary))

@@ -9,18 +9,26 @@ each finished episode. It starts using a group's data at an episode boundary.
 from __future__ import annotations
 
 import json
+import time
 from typing import Callable
 
 import numpy as np
 
 from hdrqn_ros.agents.algorithms import ALGO_SPECS
 from hdrqn_ros.agents.networks import lstm_state_size
-from hdrqn_ros.config import TrainConfig
+from hdrqn_ros.config import TrainConfig, batch_class
 from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.protocol import wire as P
 from hdrqn_ros.protocol.follower import StepFollower, done
 from hdrqn_ros.training.episodes import EpisodeRecorder
 from hdrqn_ros.training.rollout import StepRecord
+
+
+def _critic_of(step: dict, critic: dict) -> dict:
+    """``critic`` (the verdict on ``step``) if it ends the option where the episode ends."""
+    if done(step) and not critic["option_done"]:
+        raise P.ProtocolError(f"the episode ends at step key {int(step['key'])} but its critic option_done is 0")
+    return critic
 
 
 class TransitionAssembler(StepFollower):
@@ -35,6 +43,7 @@ class TransitionAssembler(StepFollower):
         self.on_episode = on_episode
         self.spec = ALGO_SPECS[cfg.algo]
         self.num_subgoals = num_subgoals
+        self.num_actions = batch_class(cfg.env).num_actions
         self.recorder_args = (1, self.spec.hierarchical, cfg.sub.gamma, cfg.meta.gamma, cfg.smdp_discount)
         self.env_steps_seen = 0  # the env's own step count, from its latest env_step
         self.transitions = 0
@@ -50,10 +59,10 @@ class TransitionAssembler(StepFollower):
         """The group's topics this assembler reads: relative name -> (type, handler(msg))."""
         out = {P.ENV_STEP: (P.FLOATS, self.on_env_step),
                P.OBSERVATION: (P.IMAGE, lambda m: self._image(P.OBSERVATION, m, 1)),
-               P.ACTION: (P.INTS, lambda m: self._ints(P.ACTION, P.ACTION_FIELDS, m))}
+               P.ACTION: (P.INTS, lambda m: self._ints(P.ACTION, P.ACTION_FIELDS, m, self.num_actions))}
         if self.spec.hierarchical:
             out[P.SUBGOAL_IMAGES] = (P.IMAGE, lambda m: self._image(P.SUBGOAL_IMAGES, m, self.num_subgoals))
-            out[P.SUBGOAL] = (P.INTS, lambda m: self._ints(P.SUBGOAL, P.SUBGOAL_FIELDS, m))
+            out[P.SUBGOAL] = (P.INTS, lambda m: self._ints(P.SUBGOAL, P.SUBGOAL_FIELDS, m, self.num_subgoals))
             out[P.CRITIC] = (P.FLOATS, self._critic)
         if self.spec.meta_input == "state":
             out[P.SUB_STATE] = (P.FLOATS, self._sub_state)
@@ -65,8 +74,14 @@ class TransitionAssembler(StepFollower):
         if got is not None:
             self.put(topic, *got)
 
-    def _ints(self, topic: str, fields, msg) -> None:
-        rec = self.decode(self.topic(topic), lambda: P.read_record(msg, fields, np.int64))
+    def _ints(self, topic: str, fields, msg, n: int) -> None:
+        """An ``action`` or ``subgoal`` record; its value (field ``topic``) must be in [0, n)."""
+        def read() -> dict:
+            rec = P.read_record(msg, fields, np.int64)
+            P.check_index(rec[topic], n, topic)
+            return rec
+
+        rec = self.decode(self.topic(topic), read)
         if rec is not None:
             self.put(topic, rec["key"], rec)
 
@@ -109,6 +124,10 @@ class TransitionAssembler(StepFollower):
             self._begin(key, obs)
         elif not self.open:
             self.skipped += 1
+        elif int(step["prev_key"]) != self.last_key:  # steps in between never arrived (e.g. a link was down)
+            self.lost_episodes += 1
+            self.skipped += 1
+            self.open = False
         else:
             self._transition(step, obs)
         return []
@@ -128,7 +147,12 @@ class TransitionAssembler(StepFollower):
         action = int(box.get(P.ACTION, prev)["action"])
         env = P.step_batch(step, obs)
         if self.spec.hierarchical:
-            critic, new_option = box.get(P.CRITIC, key), self.option_next
+            critic = self.decode(self.topic(P.CRITIC), lambda: _critic_of(step, box.get(P.CRITIC, key)))
+            if critic is None:  # the messages contradict each other: the episode cannot be assembled
+                self.lost_episodes += 1
+                self.open = False
+                return
+            new_option = self.option_next
             if new_option:  # the meta-controller publishes a subgoal when an option starts
                 self.option_subgoal = int(box.get(P.SUBGOAL, prev)["subgoal"])
             subgoal = self.option_subgoal
@@ -172,7 +196,8 @@ class TransitionAssembler(StepFollower):
         row = {"group": self.ns or "/", **{f: step[f] for f in ("key", "prev_key", "episode", "t", "extrinsic",
                                                                 "classical", "terminated", "truncated")},
                "action": action, "subgoal": subgoal, "intrinsic": intrinsic,
-               "obs": P.obs_digest(self.prev_obs), "next_obs": P.obs_digest(obs)}
+               "obs": P.obs_digest(self.prev_obs), "next_obs": P.obs_digest(obs),
+               "wall_time": time.time()}  # when assembled (wall clock): latency vs the step_log's wall_time
         self.log.write(json.dumps(row) + "\n")
 
     def stats(self) -> dict:

@@ -76,7 +76,7 @@ class StepFollower:
 
     # -- inputs ----------------------------------------------------------------------------------
     def on_env_step(self, msg) -> None:
-        step = self.decode(P.ENV_STEP, lambda: P.read_record(msg, P.STEP_FIELDS))
+        step = self.decode(P.ENV_STEP, lambda: P.read_step(msg))
         if step is None:
             return
         self.received(step)

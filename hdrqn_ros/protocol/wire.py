@@ -18,6 +18,7 @@ sub-controller handing its LSTM state (``sub_state``) to it at such steps.
 from __future__ import annotations
 
 import hashlib
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -124,6 +125,9 @@ def make_record(node, type_name: str, fields: tuple[str, ...], values) -> object
     return node.msg(type_name)(layout=_layout(node, fields), data=node.pack(np.asarray(values, dtype=dtype)))
 
 
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
 def read_record(msg, fields: tuple[str, ...], dtype=np.float64, extra: bool = False) -> dict[str, float]:
     """The named values of a ``*MultiArray`` record; ``extra``: trailing values allowed
     (returned under ``"rest"``). Raises :class:`ProtocolError` on a malformed message."""
@@ -131,8 +135,8 @@ def read_record(msg, fields: tuple[str, ...], dtype=np.float64, extra: bool = Fa
     n = len(fields)
     if data.size < n or (data.size != n and not extra):
         raise ProtocolError(f"expected {n} values ({','.join(fields)}), got {data.size}")
-    if dtype == np.float64 and not np.isfinite(data).all():
-        raise ProtocolError("non-finite value (NaN or inf)")
+    if dtype == np.float64 and not (np.abs(data) <= FLOAT32_MAX).all():  # rewards, states become float32
+        raise ProtocolError("non-finite value (NaN or inf, or beyond the float32 range)")
     out = {f: data[i].item() for i, f in enumerate(fields)}
     key = out.get("key")
     if key is not None and not (0 < key < MAX_KEY and float(key).is_integer()):
@@ -140,6 +144,27 @@ def read_record(msg, fields: tuple[str, ...], dtype=np.float64, extra: bool = Fa
     if extra:
         out["rest"] = data[n:]
     return out
+
+
+STEP_COUNTS = ("prev_key", "env_steps", "episode", "t", "action")
+STEP_FLAGS = ("terminated", "truncated", "collected", "hit_obstacle", "life_lost", "success", "decision_point")
+MAX_SUBGOALS = 128
+"""Subgoal indices are below this (replay stores them as int8)."""
+
+
+def read_step(msg) -> dict[str, float]:
+    """An ``env_step`` record whose fields are what the protocol says: :data:`STEP_COUNTS`
+    integers in [0, 2^53), :data:`STEP_FLAGS` 0 or 1, ``at_subgoal`` in [-1, 128).
+    Raises :class:`ProtocolError` naming the field."""
+    rec = read_record(msg, STEP_FIELDS)
+    for f in STEP_COUNTS:
+        if not (0 <= rec[f] < MAX_KEY and float(rec[f]).is_integer()):
+            raise ProtocolError(f"env_step {f} {rec[f]!r} is not an integer in [0, 2^53)")
+    for f in STEP_FLAGS:
+        if rec[f] not in (0.0, 1.0):
+            raise ProtocolError(f"env_step {f} must be 0 or 1, got {rec[f]!r}")
+    check_index(rec["at_subgoal"], MAX_SUBGOALS, "env_step at_subgoal", allow_none=True)
+    return rec
 
 
 def make_time(node, key: int) -> object:
@@ -248,10 +273,11 @@ def make_weights(node, payload: bytes, updates: int) -> object:
 
 
 def read_weights_version(msg) -> int:
-    """The learner update count in a weights message's layout label (0 if absent)."""
+    """The learner update count in a weights message's layout label (0 if absent or not
+    a plain decimal number of at most 18 digits)."""
     label = msg.layout.dim[0].label if len(msg.layout.dim) else ""
     _, _, n = label.partition("update=")
-    return int(n) if n.isdigit() else 0
+    return int(n) if re.fullmatch(r"[0-9]{1,18}", n) else 0
 
 
 def obs_digest(obs: np.ndarray) -> str:

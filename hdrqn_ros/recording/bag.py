@@ -200,6 +200,14 @@ class BagWriter:
         with self._guard("write to"):
             self._w.write(conn, timestamp_ns, cdr)
 
+    def sync(self) -> None:
+        """End the pending chunk and flush it to the OS: the messages written so far then
+        survive a kill of this process (``repair_bag`` recovers complete chunks)."""
+        file = self._storage()
+        if file.chunk.msgs:
+            with self._guard("write to"):
+                file.close_chunk()
+
     def _finish(self, file: _McapFile) -> None:
         """Finish ``file`` and rewrite metadata.yaml listing all finished files."""
         info = _file_info(file.path.name, file.message_start_time, file.message_end_time,
@@ -264,16 +272,25 @@ def _check(path) -> tuple[Path, dict, list[Path]]:
         raise BagError(f"{bag}: metadata.yaml is missing (interrupted recording?); {_hint(bag)}")
     try:
         info = YAML(typ="safe").load(meta.read_text("utf8"))["rosbag2_bagfile_information"]
-        names = [Path(p).name for p in info["relative_file_paths"]]
+        names = list(info["relative_file_paths"])
         types = [(t["topic_metadata"]["name"], t["topic_metadata"]["type"])
                  for t in info["topics_with_message_count"]]
         storage = info["storage_identifier"]
+        counts = [info["starting_time"]["nanoseconds_since_epoch"], info["duration"]["nanoseconds"],
+                  info["message_count"], *(t["message_count"] for t in info["topics_with_message_count"]),
+                  *(f["message_count"] for f in info.get("files") or [])]
+        paths = [f["path"] for f in info.get("files") or []]
     except Exception as err:  # YAML syntax, missing keys, wrong shapes
         raise BagError(f"{meta}: invalid rosbag2 metadata ({err}); {_hint(bag)}") from None
+    if not all(isinstance(v, str) for v in [*names, *paths, *(v for tv in types for v in tv)]) \
+            or not all(isinstance(n, int) and not isinstance(n, bool) for n in counts):
+        raise BagError(f"{meta}: invalid rosbag2 metadata (file paths, topic names and types must be strings, "
+                       f"times and message counts integers); {_hint(bag)}")
     if storage != "mcap":
         raise BagError(f"{meta}: storage {storage!r} is not supported (only mcap)")
     if bad := [(t, ty) for t, ty in types if ty not in TYPESTORE.fielddefs]:
         raise _unknown(meta, *bad[0])
+    names = [Path(n).name for n in names]
     if missing := [n for n in names if not (bag / n).exists()]:
         raise BagError(f"{bag}: data files listed in metadata.yaml are missing: {missing}")
     if unlisted := [f.name for f in on_disk if f.name not in names]:
@@ -337,7 +354,7 @@ def bag_summary(path) -> dict:
     return {"path": str(bag), "topics": topics, "message_count": info["message_count"],
             "start_ns": start, "end_ns": start + duration, "duration_s": duration / 1e9,
             "files": [{"path": f["path"], "message_count": f["message_count"]}
-                      for f in info.get("files", [])]}
+                      for f in info.get("files") or []]}
 
 
 @dataclass

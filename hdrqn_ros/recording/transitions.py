@@ -29,6 +29,7 @@ from hdrqn_ros.protocol import wire as P
 from hdrqn_ros.protocol.assembly import TransitionAssembler
 from hdrqn_ros.recording.bag import TYPESTORE, BagError, BagWriter, bag_custom_data, open_bag, read_messages
 from hdrqn_ros.training.rollout import StepRecord
+from hdrqn_ros.yaml_files import safe_load
 
 CONFIG_KEY = "hdrqn.config"
 """``custom_data`` key of a recording's training config (YAML of :class:`TrainConfig`)."""
@@ -89,6 +90,10 @@ class BagRecorder:
         self._last_ns = max(time.time_ns(), self._last_ns + 1)
         self.writer.write(connection, self._last_ns, cdr)
         self.messages += 1
+
+    def sync(self) -> None:
+        """Make every message written so far survive a kill of this process (see :meth:`BagWriter.sync`)."""
+        self.writer.sync()
 
     def close(self) -> None:
         self.writer.close()
@@ -199,7 +204,7 @@ def bag_config(path) -> dict | None:
     if not text:
         return None
     try:
-        data = yaml.safe_load(text)
+        data = safe_load(text)
     except yaml.YAMLError as exc:
         raise BagError(f"{path}: metadata.yaml custom_data {CONFIG_KEY} is not YAML ({exc})") from None
     if not isinstance(data, dict):

@@ -1,0 +1,65 @@
+"""Bounded resources: an oversized image or weights message is rejected before decoding,
+logged, and does not grow the receiving node's memory (real Cyclone DDS processes)."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from hdrqn_ros.middleware.cyclone import CycloneMiddleware
+from hdrqn_ros.middleware.port import LATCHED_QOS
+from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.supervisor import ProcessSpec, Supervisor
+
+from test_graph import domain, wait_for  # noqa: F401  (domain: a fixture)
+
+LIMIT = 1 << 20  # the sub-controller's max_message_bytes in this test
+
+
+def rss_mib(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmRSS")
+
+
+def test_oversized_images_and_weights_are_dropped_without_growing_memory(domain, tmp_path):
+    sub = ProcessSpec("sub", [sys.executable, "-c", "import sys; from hdrqn_ros.nodes.controllers import main_sub as m;"
+                              " sys.exit(m())", "--ros-args", "-p", "algo:=dqn", "-p", f"max_message_bytes:={LIMIT}"])
+    sup = Supervisor([sub], log_dir=tmp_path / "logs", stop_timeout_s=5)
+    log = tmp_path / "logs" / "sub.log"
+    sup.start()
+    mw = CycloneMiddleware([])
+    try:
+        node = mw.create_node("flooder")
+        obs_pub = node.create_publisher(P.IMAGE, "/observation", P.STEP_QOS)
+        weights_pub = node.create_publisher(P.BYTES, P.WEIGHTS["sub"], LATCHED_QOS)
+        for pub in (obs_pub, weights_pub):
+            mw.spin(until=lambda: bool(pub.writer.get_matched_subscriptions()), timeout_s=60)
+            assert pub.writer.get_matched_subscriptions(), "the sub-controller never subscribed"
+        pid = sup.pids["sub"]
+        big_image = np.zeros((1024, 1024, 3), np.uint8)  # 3 MiB, over the 1 MiB limit
+        big_weights = bytes(4 * LIMIT)
+
+        def flood(rounds: int) -> None:
+            for i in range(rounds):
+                obs_pub.publish(P.make_image(node, 10_000_000 * (i + 1), big_image, "map"))
+                weights_pub.publish(P.make_weights(node, big_weights, i))
+                mw.spin(timeout_s=0.05)
+
+        flood(10)  # warm-up: DDS buffers and the allocator settle
+        wait_for(lambda: log.read_text().count("exceeds the") >= 2, 30, "the rejections to be logged", sup)
+        before = rss_mib(pid)
+        flood(60)  # 60 x (3 + 4) MiB = 420 MiB offered
+        mw.spin(timeout_s=2.0)
+        after = rss_mib(pid)
+        sup.poll()
+        assert sup.returncodes["sub"] is None, "the sub-controller died"
+    finally:
+        mw.shutdown()
+        sup.stop()
+    text = log.read_text()
+    assert f"exceeds the {LIMIT} B message limit" in text and "/observation" in text and "sub_weights" in text
+    assert "Traceback" not in text
+    assert after - before < 40, f"RSS grew from {before:.0f} to {after:.0f} MiB while dropping 420 MiB of samples"

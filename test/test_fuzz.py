@@ -1,0 +1,751 @@
+"""Fuzzing the untrusted inputs (issue 7): wire messages, configs and ROS parameters, bags, the CLI.
+
+Hypothesis feeds every parser random and mutated input. The only failure allowed is the
+documented error type, with a message naming the problem: ``DecodeError`` for CDR bytes,
+``ProtocolError`` for message contents, ``ConfigError``/``ParameterError``/``RosArgsError``
+for configs and ROS arguments, ``BagError`` for bags, and for the CLI an exit code 0/1/2
+with no traceback. Sizes are capped so that no example can hang or exhaust memory.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import math
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from unittest import mock
+
+import numpy as np
+import pytest
+import yaml
+from hypothesis import HealthCheck, example, given, settings
+from hypothesis import strategies as st
+
+from hdrqn_ros import cli
+from hdrqn_ros.config import ConfigError, TrainConfig, build_config, parse_set
+from hdrqn_ros.envs.registration import GRID_IDS, make_batch
+from hdrqn_ros.middleware.messages import DecodeError, decode, message_class
+from hdrqn_ros.middleware.port import ParameterError, RosArgsError
+from hdrqn_ros.middleware.ros_args import check_parameter_type, load_params_file, remap_and_resolve, split_ros_args
+from hdrqn_ros.nodes import nav
+from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol.assembly import TransitionAssembler
+from hdrqn_ros.recording.bag import TYPESTORE, BagError, bag_summary, bag_topics, read_messages, repair_bag
+from hdrqn_ros.recording.transitions import (GROUP_TOPICS, BagRecorder, RosbagsMessages, bag_config, episode_summary,
+                                             read_episodes, recorded_topics)
+
+QUICK = dict(deadline=None, database=None,
+             suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture,
+                                    HealthCheck.data_too_large])
+OBS = 44
+NUM_ACTIONS, NUM_SUBGOALS = 4, 2  # the two-goal gridworld
+CFG = build_config([], algo="hdrqn-v2", env="hdrqn/GridWorld-2Goals-v0", episodes=5, num_envs=1)
+LOG = logging.getLogger("hdrqn.test_fuzz")
+
+
+class CycloneMessages:
+    """What the ``make_*`` helpers need of a node, with the Cyclone backend's message classes."""
+
+    msg = staticmethod(message_class)
+
+    @staticmethod
+    def pack(values):
+        return values
+
+
+CY = CycloneMessages()
+
+
+def to_cdr(msg) -> bytes:
+    """What ``CycloneNode.to_cdr`` (and a DDS writer) sends for ``msg``."""
+    return msg.serialize(use_version_2=False)
+
+
+# -- 1. message decoding ---------------------------------------------------------------------------
+SUBSCRIBED = [P.IMAGE, P.FLOATS, P.INTS, P.BYTES, nav.OCCUPANCY_GRID]
+"""Every type a node subscribes to (observations and subgoal images; env_step, critic, credit,
+sub_state; action, subgoal; weights; the Nav2 costmap)."""
+PLAYED = [P.STRING, P.POSE_STAMPED, P.CLOCK_TYPE, nav.TWIST, "rcl_interfaces/msg/Log"]
+"""Further types the bag player decodes (``Node.from_cdr``) from recordings."""
+HEADERS = [b"\x00\x01\x00\x00", b"\x00\x00\x00\x00", b"\x00\x07\x00\x00", b"\x00\x09\x00\x00"]
+"""CDR little- and big-endian, XCDR2 little-endian, XCDR2 delimited."""
+WORDS = [(2**32 - 1).to_bytes(4, "little"), (2**31 - 1).to_bytes(4, "little"), (2**31).to_bytes(4, "big"),
+         (2**20).to_bytes(4, "little"), (3).to_bytes(4, "little"), b"\x00\x00\x00\x00"]
+"""Lengths that lie: huge, negative when signed, a few, none."""
+
+
+def sample_messages() -> dict[str, tuple[str, bytes]]:
+    """One realistic sample of each subscribed type, as CDR."""
+    grid = message_class(nav.OCCUPANCY_GRID)()
+    grid.info.width, grid.info.height, grid.info.resolution = 6, 5, 0.05
+    grid.data = np.arange(30, dtype=np.int8)
+    pixels = np.arange(OBS * OBS * 3, dtype=np.uint32).astype(np.uint8).reshape(OBS, OBS, 3)
+    step = [20_000_000, 10_000_000, 1, 0, 1, 2, 0.5, -0.1, 0, 0, -1, 0, 0, 0, 0, 1]
+    msgs = {"observation": (P.IMAGE, P.make_image(CY, 20_000_000, pixels, "map")),
+            "env_step": (P.FLOATS, P.make_record(CY, P.FLOATS, P.STEP_FIELDS, step)),
+            "action": (P.INTS, P.make_record(CY, P.INTS, P.ACTION_FIELDS, [10_000_000, 3])),
+            "sub_state": (P.FLOATS, P.make_state(CY, 10_000_000, np.linspace(-1, 1, 256))),
+            "weights": (P.BYTES, P.make_weights(CY, bytes(range(64)), 1234)),
+            "costmap": (nav.OCCUPANCY_GRID, grid),
+            "pose": (P.POSE_STAMPED, P.make_pose(CY, 20_000_000, "map", 1.0, 2.0)),
+            "string": (P.STRING, message_class(P.STRING)(data="status ok"))}
+    return {name: (type_name, to_cdr(msg)) for name, (type_name, msg) in msgs.items()}
+
+
+SAMPLES = sample_messages()
+
+
+def read_as_node(name: str, msg):
+    """What the node that subscribes to sample ``name``'s topic reads from ``msg``."""
+    readers = {"observation": lambda: P.read_image(msg, OBS, OBS),
+               "env_step": lambda: P.read_record(msg, P.STEP_FIELDS),
+               "action": lambda: P.check_index(P.read_record(msg, P.ACTION_FIELDS, np.int64)["action"],
+                                               NUM_ACTIONS, "action"),
+               "sub_state": lambda: P.read_state(msg, 256),
+               "weights": lambda: (P.read_weights_version(msg), P.as_bytes(msg.data)),
+               "costmap": lambda: nav.costmap_to_observation(msg, view_cells=5),
+               "pose": lambda: P.key_of(msg.header.stamp),
+               "string": lambda: msg.data}
+    return readers[name]()
+
+
+lying_bytes = st.lists(st.one_of(st.binary(max_size=24), st.sampled_from(WORDS)), max_size=24).map(b"".join)
+
+
+@settings(max_examples=300, **QUICK)
+@given(type_name=st.sampled_from(SUBSCRIBED + PLAYED), header=st.sampled_from(HEADERS) | st.binary(max_size=4),
+       body=lying_bytes)
+@example(type_name=P.FLOATS, header=HEADERS[0], body=b"")  # an empty payload is not a default message
+def test_arbitrary_bytes_decode_or_raise_decode_error(type_name, header, body):
+    cls = message_class(type_name)
+    try:
+        msg = decode(cls, header + body)
+    except DecodeError as exc:
+        assert type_name in str(exc)
+    else:
+        assert isinstance(msg, cls) and len(header + body) >= 8
+
+
+def _mutate(data: bytes, edits) -> bytes:
+    out = bytearray(data)
+    for kind, where, value in edits:
+        if not out:
+            break
+        pos = where % len(out)
+        if kind == "flip":
+            out[pos] ^= value % 255 + 1
+        elif kind == "word":
+            pos -= pos % 4  # lengths sit on 4-byte boundaries
+            out[pos:pos + 4] = WORDS[value % len(WORDS)]
+        else:
+            del out[pos:]
+    return bytes(out)
+
+
+edits = st.lists(st.tuples(st.sampled_from(["flip", "word", "cut"]), st.integers(0, 2**16), st.integers(0, 255)),
+                 min_size=1, max_size=3)
+
+
+@settings(max_examples=300, **QUICK)
+@given(name=st.sampled_from(sorted(SAMPLES)), edits=edits)
+def test_mutated_samples_are_read_or_rejected_like_a_node_does(name, edits):
+    """A corrupted sample: the decoder raises DecodeError or the node's reader ProtocolError
+    (NavConfigError for a costmap); a shortened one never decodes."""
+    type_name, data = SAMPLES[name]
+    bad = _mutate(data, edits)
+    try:
+        msg = decode(message_class(type_name), bad)
+    except DecodeError as exc:
+        assert type_name in str(exc)
+        return
+    assert any(kind != "cut" for kind, *_ in edits), "a truncated sample decoded"
+    try:
+        read_as_node(name, msg)
+    except (P.ProtocolError, nav.NavConfigError) as exc:
+        assert str(exc)
+
+
+@settings(max_examples=100, **QUICK)
+@given(name=st.sampled_from(sorted(SAMPLES)), cut=st.integers(1, 64))
+def test_truncated_samples_never_decode(name, cut):
+    type_name, data = SAMPLES[name]
+    with pytest.raises(DecodeError, match=type_name):
+        decode(message_class(type_name), data[:-cut])
+    assert read_as_node(name, decode(message_class(type_name), data)) is not None  # the whole one does
+
+
+any_float = st.floats(allow_nan=True, allow_infinity=True) | st.integers(-2**63, 2**63 - 1).map(float)
+key_like = st.integers(-5, 2**54).map(float) | any_float
+
+
+def _record_values(fields: tuple[str, ...]):
+    """Field values for a record of ``fields``: mostly plausible, sometimes absurd, sometimes too few/many."""
+    plausible = st.lists(st.floats(-10, 10) | st.integers(-2, 5).map(float), min_size=len(fields) - 1,
+                         max_size=len(fields) - 1).flatmap(lambda rest: key_like.map(lambda k: [k, *rest]))
+    return st.one_of(plausible, plausible.flatmap(lambda v: st.lists(any_float, max_size=3).map(lambda x: v + x)),
+                     st.lists(any_float, max_size=len(fields) + 2))
+
+
+RECORDS = [(P.STEP_FIELDS, np.float64), (P.CRITIC_FIELDS, np.float64), (P.CREDIT_FIELDS, np.float64),
+           (P.ACTION_FIELDS, np.int64), (P.SUBGOAL_FIELDS, np.int64)]
+
+
+@settings(max_examples=300, **QUICK)
+@given(data=st.data(), which=st.integers(0, len(RECORDS) - 1))
+def test_records_with_random_values_are_read_or_rejected(data, which):
+    fields, dtype = RECORDS[which]
+    values = data.draw(_record_values(fields))
+    type_name = P.FLOATS if dtype == np.float64 else P.INTS
+    if dtype == np.int64:
+        values = [int(v) if math.isfinite(v) and abs(v) < 2**63 else -1 for v in values]
+    msg = decode(message_class(type_name), to_cdr(message_class(type_name)(data=np.asarray(values, dtype))))
+    try:
+        rec = P.read_record(msg, fields, dtype)
+    except P.ProtocolError as exc:
+        assert str(exc)
+        return
+    assert list(rec) == list(fields) and [rec[f] for f in fields] == list(np.asarray(values, dtype))
+    assert all(math.isfinite(v) for v in rec.values()) and 0 < rec.get("key", 1) < P.MAX_KEY
+    for name, n in (("action", NUM_ACTIONS), ("subgoal", NUM_SUBGOALS)):
+        if name in rec:
+            try:
+                assert 0 <= P.check_index(rec[name], n, name) < n
+            except P.ProtocolError as exc:
+                assert name in str(exc)
+
+
+@settings(max_examples=200, **QUICK)
+@given(height=st.sampled_from([OBS, 2 * OBS, 0, 1, 2**32 - 1]) | st.integers(0, 2**32 - 1),
+       width=st.sampled_from([OBS, 0, 2**31]) | st.integers(0, 2**32 - 1),
+       step=st.sampled_from([OBS * 3, 0, 2**32 - 1]) | st.integers(0, 2**32 - 1),
+       encoding=st.sampled_from(["rgb8", "bgr8", "mono8", ""]) | st.text(max_size=8),
+       size=st.sampled_from([OBS * OBS * 3, 2 * OBS * OBS * 3, 0]) | st.integers(0, 3 * OBS * OBS * 3),
+       sec=st.integers(-2**31, 2**31 - 1), nanosec=st.integers(0, 2**32 - 1), rows=st.sampled_from([1, 2]))
+def test_images_with_random_fields_are_read_or_rejected(height, width, step, encoding, size, sec, nanosec, rows):
+    Image, Header, Time = (message_class(t) for t in (P.IMAGE, "std_msgs/msg/Header", "builtin_interfaces/msg/Time"))
+    img = Image(header=Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id="map"), height=height, width=width,
+                encoding=encoding, is_bigendian=0, step=step, data=np.arange(size, dtype=np.uint32).astype(np.uint8))
+    msg = decode(Image, to_cdr(img))
+    try:
+        key, pixels = P.read_image(msg, OBS * rows, OBS)
+    except P.ProtocolError as exc:
+        assert "image" in str(exc)
+        return
+    assert pixels.shape == (OBS * rows, OBS, 3) and 0 < key < P.MAX_KEY
+    assert (pixels.reshape(-1) == np.arange(size, dtype=np.uint32).astype(np.uint8)).all()
+
+
+@settings(max_examples=100, **QUICK)
+@given(key=key_like, state=st.lists(any_float, min_size=250, max_size=260))
+def test_sub_states_with_random_values_are_read_or_rejected(key, state):
+    msg = decode(message_class(P.FLOATS), to_cdr(message_class(P.FLOATS)(data=np.asarray([key, *state]))))
+    try:
+        got_key, got = P.read_state(msg, 256)
+    except P.ProtocolError as exc:
+        assert str(exc)
+        return
+    assert got_key == key and got.shape == (256,) and got.dtype == np.float32 and np.isfinite(got).all()
+
+
+@settings(max_examples=200, **QUICK)
+@given(labels=st.lists(st.text(max_size=12).map(lambda s: "safetensors update=" + s) | st.text(max_size=30),
+                       max_size=2),
+       version=st.integers(0, 10**30))
+@example(labels=["safetensors update=\u00b2"], version=0)  # a superscript two: str.isdigit, but not int()
+@example(labels=["safetensors update=" + "9" * 5000], version=0)  # over int()'s digit limit
+def test_weights_version_labels_never_raise(labels, version):
+    Dim, Layout = message_class("std_msgs/msg/MultiArrayDimension"), message_class("std_msgs/msg/MultiArrayLayout")
+    layout = Layout(dim=[Dim(label=label, size=0, stride=0) for label in labels], data_offset=0)
+    msg = decode(message_class(P.BYTES), to_cdr(message_class(P.BYTES)(layout=layout, data=np.zeros(3, np.uint8))))
+    assert P.read_weights_version(msg) >= 0
+    if version < 10**18:
+        assert P.read_weights_version(P.make_weights(CY, b"xyz", version)) == version
+
+
+@settings(max_examples=150, **QUICK)
+@given(width=st.integers(0, 12) | st.integers(0, 2**32 - 1), height=st.integers(0, 12),
+       resolution=st.floats(width=32), x=st.floats(), y=st.floats(), size=st.integers(0, 150))
+def test_costmaps_with_random_fields_are_read_or_rejected(width, height, resolution, x, y, size):
+    grid = message_class(nav.OCCUPANCY_GRID)()
+    grid.info.width, grid.info.height, grid.info.resolution = width, height, resolution
+    grid.info.origin.position.x, grid.info.origin.position.y = x, y
+    grid.data = (np.arange(size) % 256 - 128).astype(np.int8)
+    msg = decode(message_class(nav.OCCUPANCY_GRID), to_cdr(grid))
+    try:
+        obs = nav.costmap_to_observation(msg, view_cells=5)
+    except nav.NavConfigError as exc:
+        assert "costmap" in str(exc)
+        return
+    assert obs.shape == (OBS, OBS, 3) and obs.dtype == np.uint8
+
+
+# -- the learner's assembly of transitions (the node's subscriptions, and bags) ----------------------
+STEP_NS = 10_000_000
+
+
+def _image(m, key: int, rows: int, fill: int):
+    return P.make_image(m, key, np.full((OBS * rows, OBS, 3), fill, np.uint8), "map")
+
+
+def group_stream(episodes: list[list[dict]], m=RosbagsMessages()) -> list[tuple[str, object]]:
+    """(topic, message) of one hDRQNv2 group in the order the trainer records them
+    (:class:`~hdrqn_ros.recording.transitions.TransitionRecorder`). Each episode is a list of
+    steps, each a dict of the values to publish (plausible or not) - see :func:`steps`."""
+    out, key, env_steps = [], 0, 0
+    for e, ep in enumerate(episodes):
+        key += STEP_NS
+        first = dict.fromkeys(P.STEP_FIELDS, 0)
+        first.update(key=key, env_steps=env_steps, episode=e, at_subgoal=-1, decision_point=1)
+        out += [(P.ENV_STEP, P.make_record(m, P.FLOATS, P.STEP_FIELDS, [first[f] for f in P.STEP_FIELDS])),
+                (P.OBSERVATION, _image(m, key, 1, e)),
+                (P.CRITIC, P.make_record(m, P.FLOATS, P.CRITIC_FIELDS, [key, 0, 0, 1, -1]))]
+        new_option = True
+        for t, s in enumerate(ep, 1):
+            prev = key
+            out.append((P.ACTION, P.make_record(m, P.INTS, P.ACTION_FIELDS, [prev, s["action"]])))
+            if new_option:
+                out += [(P.SUBGOAL, P.make_record(m, P.INTS, P.SUBGOAL_FIELDS, [prev, s["subgoal"], 1])),
+                        (P.SUBGOAL_IMAGES, _image(m, prev, s["image_rows"], t))]
+            if s["option_done"]:
+                out.append((P.SUB_STATE, P.make_state(m, prev, np.full(256, s["state"]))))
+            key += STEP_NS + s["key_gap"]
+            env_steps += 1
+            step = {"key": key, "prev_key": prev, "env_steps": env_steps, "episode": e, "t": t,
+                    **{f: s[f] for f in P.STEP_FIELDS if f in s}}
+            out += [(P.ENV_STEP, P.make_record(m, P.FLOATS, P.STEP_FIELDS, [step.get(f, 0) for f in P.STEP_FIELDS])),
+                    (P.CRITIC, P.make_record(m, P.FLOATS, P.CRITIC_FIELDS,
+                                             [key, s["intrinsic"], s["reached"], s["option_done"], s["subgoal"]])),
+                    (P.OBSERVATION, _image(m, key, 1, t)),
+                    (P.POSE, P.make_pose(m, key, "map", 1.0, 2.0))]
+            new_option = bool(s["option_done"])
+    return out
+
+
+def _valid_step(last: bool, reached: bool) -> dict:
+    return {"action": 1, "subgoal": 0, "image_rows": NUM_SUBGOALS, "option_done": int(reached or last), "state": 0.5,
+            "key_gap": 0, "extrinsic": 0.1, "classical": -0.01, "terminated": int(last), "truncated": 0,
+            "at_subgoal": 0 if reached else -1, "collected": int(reached), "hit_obstacle": 0, "life_lost": 0,
+            "success": 0, "decision_point": int(reached and not last), "intrinsic": float(reached),
+            "reached": int(reached)}
+
+
+VALID_EPISODES = [[_valid_step(t == 3, t == 2) for t in range(1, 4)], [_valid_step(t == 2, False) for t in range(1, 3)]]
+"""Two episodes (3 and 2 steps), the first with two options."""
+
+odd_int = st.sampled_from([-1, NUM_ACTIONS, 255, 256, -2**63, 2**63 - 1]) | st.integers(-2**63, 2**63 - 1)
+odd_float = st.floats(allow_nan=True, allow_infinity=True) | st.sampled_from([1e300, -1e39, 3.5e38, 0.5, 2.0])
+
+
+@st.composite
+def steps(draw, last: bool, reached: bool) -> dict:
+    """A valid step's values, with a few of them replaced by odd ones."""
+    step = _valid_step(last, reached)
+    odd = {"action": odd_int, "subgoal": odd_int, "image_rows": st.sampled_from([1, 3]),
+           "option_done": st.sampled_from([0, 1]) | odd_float, "state": odd_float,
+           "key_gap": st.sampled_from([-STEP_NS, 1, -1, 2**53]), "intrinsic": odd_float, "reached": odd_float,
+           **{f: odd_float for f in ("extrinsic", "classical", "terminated", "truncated", "at_subgoal", "collected",
+                                     "hit_obstacle", "life_lost", "success", "decision_point")}}
+    for name in draw(st.lists(st.sampled_from(sorted(odd)), max_size=2, unique=True)):
+        step[name] = draw(odd[name])
+    return step
+
+
+fuzzed_episodes = st.lists(st.integers(1, 3), min_size=1, max_size=3).flatmap(
+    lambda lengths: st.tuples(*[st.tuples(*[steps(t == n, t == 1 and n > 1) for t in range(1, n + 1)])
+                                for n in lengths])).map(lambda eps: [list(ep) for ep in eps])
+
+
+def check_episode(sub, meta) -> None:
+    """What training needs of a replay episode: in-range actions/subgoals, finite values."""
+    actions = sub.fields["action"]
+    assert ((0 <= actions) & (actions < NUM_ACTIONS)).all(), actions
+    assert ((0 <= meta.fields["action"]) & (meta.fields["action"] < NUM_SUBGOALS)).all(), meta.fields["action"]
+    for ep in (sub, meta):
+        assert all(np.isfinite(v).all() for v in ep.fields.values() if v.dtype.kind == "f")
+        assert np.isfinite(ep.frames).all()
+    assert sub.frames.shape[1:] == (OBS, OBS, 3) and sub.segment_data["subgoal_image"].shape[1:] == (OBS, OBS, 3)
+
+
+def test_valid_stream_assembles_into_its_episodes():
+    finished = []
+    asm = TransitionAssembler("/", CFG, NUM_SUBGOALS, lambda *ep: finished.append(ep), logger=LOG)
+    handlers = asm.inputs()
+    for topic, msg in group_stream(VALID_EPISODES):
+        if topic in handlers:
+            handlers[topic][1](msg)
+    assert [len(sub.fields["action"]) for _, sub, _, _ in finished] == [3, 2]
+    assert [len(meta.fields["action"]) for _, _, meta, _ in finished] == [2, 1]
+    for _, sub, meta, _ in finished:
+        check_episode(sub, meta)
+    assert asm.rejected == 0
+
+
+@settings(max_examples=150, **QUICK)
+@given(episodes=fuzzed_episodes)
+def test_learner_assembles_random_messages_without_crashing(episodes):
+    """The learner node's per-group assembler (a bad message is logged and dropped): any
+    stream of odd values gives no exception, and only episodes fit for training."""
+    finished = []
+    asm = TransitionAssembler("/", CFG, NUM_SUBGOALS, lambda *ep: finished.append(ep), logger=LOG)
+    handlers = asm.inputs()
+    for topic, msg in group_stream(episodes):
+        if topic in handlers:
+            handlers[topic][1](msg)
+    for _, sub, meta, _ in finished:
+        check_episode(sub, meta)
+
+
+# -- 3. bags -------------------------------------------------------------------------------------------
+def write_recording(path: Path, episodes: list[list[dict]], compress: bool = False) -> Path:
+    """A recording of one hDRQNv2 group (what ``hdrqn train --record`` writes), uncompressed by default
+    so that byte flips reach the CDR."""
+    bag = BagRecorder(path, CFG, "test_fuzz", compress=compress)
+    conns = bag.add_group("/", recorded_topics("hdrqn-v2"))
+    for topic, msg in group_stream(episodes):
+        bag.write(conns[topic], bytes(TYPESTORE.serialize_cdr(msg, GROUP_TOPICS[topic])))
+    bag.close()
+    return bag.path
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    bag = write_recording(tmp_path_factory.mktemp("fuzz") / "rec", VALID_EPISODES)
+    assert [len(sub.fields["action"]) for _, sub, _, _ in read_episodes([bag], CFG, NUM_SUBGOALS)] == [3, 2]
+    return bag
+
+
+@contextlib.contextmanager
+def copy_of(bag: Path):
+    with tempfile.TemporaryDirectory() as tmp:
+        yield Path(shutil.copytree(bag, Path(tmp) / bag.name))
+
+
+BAG_READERS = {"bag_summary": bag_summary, "bag_topics": bag_topics, "bag_config": bag_config,
+               "episode_summary": episode_summary, "read_messages": lambda b: list(read_messages(b)),
+               "read_episodes": lambda b: list(read_episodes([b], CFG, NUM_SUBGOALS)), "repair_bag": repair_bag}
+"""Everything that reads a bag (one per example: each parses metadata.yaml, which is slow)."""
+
+
+yaml_junk = st.sampled_from(["", "[", "{a: 1", "2001-13-01", "!!int x", "!!bool maybe", "[" * 400, "&a [*a]", "~",
+                             "- 1\n- 2", "-1", "1e999", "{}", "nanoseconds_since_epoch", "\x00"]) | st.text(max_size=20)
+
+
+@st.composite
+def metadata_edits(draw, text: str) -> str:
+    """metadata.yaml with lines dropped, values replaced by junk, or cut short."""
+    lines = text.splitlines()
+    for _ in range(draw(st.integers(1, 3))):
+        i = draw(st.integers(0, len(lines) - 1))
+        kind = draw(st.sampled_from(["drop", "value", "line", "cut"]))
+        if kind == "drop":
+            del lines[i]
+        elif kind == "value":
+            head, sep, _ = lines[i].partition(":")
+            lines[i] = head + (sep or ":") + " " + draw(yaml_junk).replace("\n", " ")
+        elif kind == "line":
+            lines[i] = draw(yaml_junk)
+        else:
+            lines = lines[:i]
+        if not lines:
+            break
+    return "\n".join(lines)
+
+
+near_ends = st.integers(0, 4096) | st.integers(-4096, -1) | st.integers(0, 2**31)
+"""Byte offsets, mostly in an MCAP file's header, summary and footer (negative: from the end)."""
+
+
+@settings(max_examples=70, **QUICK)
+@given(data=st.data(), flips=st.lists(st.tuples(near_ends, st.integers(1, 255)), max_size=4),
+       cut=st.none() | near_ends, meta=st.booleans(), reader=st.sampled_from(sorted(BAG_READERS)))
+def test_damaged_bags_give_bag_errors(recording, data, flips, cut, meta, reader):
+    """Flipped bytes, a cut file, a mangled metadata.yaml: each reader succeeds or raises
+    BagError naming the bag; a bag that repair_bag accepted can then be read."""
+    with copy_of(recording) as bag:
+        file = next(bag.glob("*.mcap"))
+        raw = bytearray(file.read_bytes())
+        for pos, value in flips:
+            raw[pos % len(raw)] ^= value
+        if cut is not None:
+            raw = raw[:cut % len(raw)]
+        file.write_bytes(bytes(raw))
+        if meta:
+            text = (bag / "metadata.yaml").read_text()
+            (bag / "metadata.yaml").write_text(data.draw(metadata_edits(text)))
+        try:
+            BAG_READERS[reader](bag)
+        except BagError as exc:
+            assert str(bag) in str(exc), exc
+        else:
+            if reader == "repair_bag":
+                bag_summary(bag)
+
+
+@settings(max_examples=25, **QUICK)
+@given(episodes=fuzzed_episodes)
+def test_recordings_of_odd_values_give_episodes_fit_for_training_or_bag_errors(episodes):
+    """A bag of well-formed CDR whose values are odd (out-of-range actions and subgoals,
+    flags of 0.5, rewards beyond float32, contradicting critics): read_episodes yields only
+    episodes training can use, or raises BagError naming the bag and topic."""
+    with tempfile.TemporaryDirectory() as tmp:
+        bag = write_recording(Path(tmp) / "odd", episodes)
+        try:
+            for _, sub, meta, _ in read_episodes([bag], CFG, NUM_SUBGOALS):
+                check_episode(sub, meta)
+        except BagError as exc:
+            assert str(bag) in str(exc) and "topic" in str(exc), exc
+        try:
+            assert all(group["episodes"] <= len(episodes) for group in episode_summary(bag).values())
+        except BagError as exc:
+            assert str(bag) in str(exc) and "topic /env_step" in str(exc), exc
+
+
+# -- 2. configs, --set overrides, ROS arguments and parameter files ---------------------------------
+NASTY_YAML = ["2001-13-01", "2001-02-30 10:00:00", "!!int x", "!!float x", "!!bool maybe", "!!timestamp x",
+              "!!binary '%'", "[" * 1200, "{" * 1200, "&a [*a]", "*x", "!!python/object/apply:os.system [ls]",
+              "{[1]: 2}", "? [a]\n: 1", "\x00", "\ufeff\x85", "1e999", "-.inf", ".nan", "0x1_", "~", "''", "|\n x",
+              "a: b: c", "- - -", "%YAML 1.1\n---", "--- 1\n--- 2"]
+"""YAML that PyYAML rejects with ValueError, KeyError, AttributeError, RecursionError..., or that
+builds odd values (recursive lists, NaN, bytes)."""
+CONFIG_KEYS = sorted(TrainConfig.model_fields) + ["sub.seq_len", "meta.epsilon.steps", "env_kwargs.view", "view",
+                                                  "sub.epsilon", "files", "base", "", ".", "a..b", "env_kwargs"]
+yaml_values = st.sampled_from(NASTY_YAML) | st.text(max_size=12) | st.integers().map(str) | st.floats().map(str)
+json_like = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),
+                         lambda inner: st.lists(inner, max_size=3)
+                         | st.dictionaries(st.sampled_from(CONFIG_KEYS) | st.text(max_size=5) | st.integers(),
+                                           inner, max_size=3), max_leaves=12)
+
+
+@contextlib.contextmanager
+def text_file(text: str | bytes, name: str = "file.yaml"):
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / name
+        path.write_bytes(text if isinstance(text, bytes) else text.encode("utf-8", "surrogatepass"))
+        yield path
+
+
+@settings(max_examples=300, **QUICK)
+@given(items=st.lists(st.tuples(st.sampled_from(CONFIG_KEYS) | st.text(max_size=8), st.sampled_from(["=", ":", ""]),
+                                yaml_values).map("".join), max_size=4))
+@example(items=["files=[]"])  # collides with build_config's own parameter names
+@example(items=["base=1"])
+@example(items=["sub.seq_len=2001-13-01"])
+@example(items=["env_kwargs.foo=1"])
+def test_set_overrides_give_a_config_or_config_error(items):
+    try:
+        overrides = parse_set(items)
+        cfg = build_config([], **overrides)
+    except ConfigError as exc:
+        assert str(exc)
+        return
+    usable(cfg)
+
+
+def usable(cfg: TrainConfig) -> None:
+    """What the trainer does with a config: a torch device, a domain of ``env_kwargs``
+    (whose values it checks itself, with ValueError)."""
+    import torch
+
+    torch.device(cfg.device)
+    if cfg.env in GRID_IDS:
+        with contextlib.suppress(ValueError):
+            make_batch(cfg.env, 1, **cfg.env_kwargs)
+
+
+@settings(max_examples=200, **QUICK)
+@given(doc=json_like.map(lambda d: yaml.safe_dump(d, allow_unicode=True)) | st.sampled_from(NASTY_YAML)
+       | st.text(max_size=60) | st.binary(max_size=30))
+@example(doc=b"algo: \xff\xfe")  # not UTF-8
+@example(doc="device: junk")  # not a torch device
+@example(doc="env_kwargs: {foo: 1}")  # not an option of the domain
+def test_config_files_give_a_config_or_config_error_naming_the_file(doc):
+    with text_file(doc) as path:
+        try:
+            cfg = build_config([path])
+        except ConfigError as exc:
+            assert str(path) in str(exc)
+            return
+    usable(cfg)
+
+
+ROS_FLAGS = ["--ros-args", "--", "-p", "--param", "-r", "--remap", "--params-file", "--log-level", "-e", "--enclave",
+             "--disable-rosout-logs", "--unknown", "-x"]
+ros_values = (st.tuples(st.sampled_from(["algo", "view", "ros_domain_id", "__node", "__ns", "env_step", "/a", "~/b",
+                                         "node:topic", "", "x:y:z"]),
+                        st.sampled_from([":=", "=", ""]), yaml_values).map("".join) | st.text(max_size=10))
+PARAM_DEFAULTS = {"algo": "hdrqn-v2", "view": "5", "seed": 0, "epsilon": -1.0, "groups": ["/"], "resume": False}
+
+
+@settings(max_examples=300, **QUICK)
+@given(argv=st.lists(st.sampled_from(ROS_FLAGS) | ros_values, max_size=8),
+       params=json_like | st.sampled_from(NASTY_YAML),
+       node=st.sampled_from(["learner", "sub_controller"]), ns=st.sampled_from(["/", "/group0", "/a/b"]),
+       topic=st.sampled_from(["env_step", "/clock", "~/status", "x"]))
+def test_ros_args_and_params_files_give_parameters_or_errors(argv, params, node, ns, topic):
+    """``--ros-args`` (with a random parameters file): RosArgsError or ParameterError, else
+    parameters that a node declares with ParameterError for a wrong type."""
+    doc = params if isinstance(params, str) else yaml.safe_dump(params)
+    with text_file(doc, "params.yaml") as path:
+        if "--params-file" in argv:
+            argv.insert(argv.index("--params-file") + 1, str(path))
+        try:
+            user, ros = split_ros_args(argv)
+        except (RosArgsError, ParameterError) as exc:
+            assert str(exc)
+            return
+    assert isinstance(user, list) and remap_and_resolve(ros, topic, ns, node).startswith("/")
+    for name, value in ros.parameters_for(node, ns).items():
+        if name in PARAM_DEFAULTS:
+            try:
+                check_parameter_type(f"{ns}/{node}", name, PARAM_DEFAULTS[name], value)
+            except ParameterError as exc:
+                assert name in str(exc)
+
+
+@settings(max_examples=200, **QUICK)
+@given(doc=json_like.map(yaml.safe_dump) | st.sampled_from(NASTY_YAML) | st.text(max_size=40)
+       | st.dictionaries(st.sampled_from(["/**", "learner", "/group0/critic", "ns"]),
+                         st.dictionaries(st.sampled_from(["ros__parameters", "learner", "x"]), json_like, max_size=2),
+                         max_size=2).map(yaml.safe_dump))
+@example(doc="/**:\n  ros__parameters:\n    seed: 2001-13-01\n")
+def test_params_files_give_entries_or_parameter_error_naming_the_file(doc):
+    with text_file(doc, "params.yaml") as path:
+        try:
+            entries = load_params_file(path)
+        except ParameterError as exc:
+            assert str(path) in str(exc)
+            return
+    assert all(isinstance(pattern, str) and isinstance(name, str) for pattern, name, _ in entries)
+
+
+# -- 4. the hdrqn command -------------------------------------------------------------------------------
+class Started(BaseException):
+    """Raised where a command would start its long work (training, evaluation, a graph, playing)."""
+
+
+LONG_WORK = ["hdrqn_ros.training.trainer.Trainer", "hdrqn_ros.training.offline.OfflineTrainer",
+             "hdrqn_ros.training.learner.evaluate", "hdrqn_ros.supervisor.Supervisor", "hdrqn_ros.nodes.common.run_node"]
+CLI_COMMANDS = [("train",), ("eval",), ("plot",), ("up",), ("bag", "info"), ("bag", "repair"), ("bag", "play"), ("envs",)]
+"""The commands fuzzed (with LONG_WORK stubbed): not ``experiment``, which starts processes."""
+PATHS = ["missing", "file.txt", "emptydir", "bag", "bad.yaml", "latin1.yaml", "config.yaml", "emptydir/new",
+         "file.txt/below", "", "bag/metadata.yaml", "bag/rec_0.mcap"]
+"""Paths in the example's working directory (see :func:`cli_workdir`)."""
+junk = st.sampled_from(["--", "-", "--bogus", "-x", "nan", "inf", "-1", "0", "1e400", "full", "\x00", "=", "a=b"]) \
+    | st.text(max_size=6)
+
+
+def _subparser(parser, names):
+    for name in names:
+        parser = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[name]
+    return parser
+
+
+def _values(action) -> st.SearchStrategy:
+    """Values for one argument: plausible ones from its definition (four times in five), or junk."""
+    if action.choices:
+        plausible = st.sampled_from(sorted(map(str, action.choices)))
+    elif action.type is int:
+        plausible = st.integers(-3, 10**6).map(str)
+    elif action.type is float:
+        plausible = st.sampled_from(["nan", "inf", "-inf", "-1", "0", "0.5", "2", "1e400"])
+    elif action.dest == "set":
+        plausible = st.tuples(st.sampled_from(CONFIG_KEYS), yaml_values).map("=".join)
+    else:
+        plausible = st.sampled_from(PATHS)
+    return st.integers(0, 4).flatmap(lambda i: plausible if i else junk)
+
+
+@st.composite
+def cli_argv(draw) -> list[str]:
+    """A command of :data:`CLI_COMMANDS` with its positionals, its required options and about a third
+    of the others (all as its parser defines them), and now and then a stray argument."""
+    command = draw(st.sampled_from(CLI_COMMANDS))
+    parser = _subparser(cli.build_parser(), command)
+    argv = list(command)
+    for action in parser._actions:
+        if isinstance(action, argparse._HelpAction) or \
+                (action.option_strings and not action.required and draw(st.integers(0, 2))):
+            continue
+        many = action.nargs in ("+", "*")
+        count = 0 if action.nargs == 0 else draw(st.integers(int(action.nargs != "*"), 3 if many else 1))
+        if action.option_strings:
+            argv.append(draw(st.sampled_from(action.option_strings)))
+        argv += [draw(_values(action)) for _ in range(count)]
+    if not draw(st.integers(0, 5)):
+        argv.append(draw(junk | st.sampled_from(["--help", "-h", "--version"])))
+    return argv
+
+
+@contextlib.contextmanager
+def cli_workdir(recording: Path):
+    """A fresh working directory holding the files that :data:`PATHS` name, with a clean environment."""
+    with tempfile.TemporaryDirectory() as tmp, contextlib.chdir(tmp), mock.patch.dict(os.environ):
+        os.environ.pop("HDRQN_DEBUG", None)
+        Path("file.txt").write_text("not a config: [")
+        Path("emptydir").mkdir()
+        Path("bad.yaml").write_text("algo: [unclosed\n")
+        Path("latin1.yaml").write_bytes("algo: caf\xe9\n".encode("latin-1"))
+        Path("config.yaml").write_text("episodes: 3\nnum_envs: 1\n")
+        shutil.copytree(recording, "bag")
+        yield
+
+
+def run_cli(argv: list[str], capsys) -> int | None:
+    """``hdrqn ARGV`` in this process: its exit code, or None where it started its long work."""
+    try:
+        rc = cli.main(argv)
+    except SystemExit as exc:
+        rc = exc.code
+    except Started:
+        rc = None
+    out, err = capsys.readouterr()
+    assert "Traceback" not in out + err
+    if rc is not None:
+        assert rc in (0, 1, 2), (rc, err)
+    if rc == 2:
+        assert "error" in err or "usage" in err, err
+    return rc
+
+
+@pytest.fixture
+def long_work_stubbed(monkeypatch):
+    def started(*args, **kwargs):
+        raise Started()
+
+    for target in LONG_WORK:
+        monkeypatch.setattr(target, started)
+
+
+@settings(max_examples=150, **QUICK)
+@given(argv=cli_argv())
+@example(argv=["train", "--out", "run", "--device", "junk"])
+@example(argv=["train", "--out", "run", "--set", "env_kwargs.foo=1"])
+@example(argv=["train", "--out", "run", "--set", "files=3"])
+@example(argv=["train", "--out", "run", "--config", "latin1.yaml"])
+@example(argv=["train", "--out", "run", "--set", "sub.seq_len=2001-13-01"])
+@example(argv=["bag", "info", "bag"])
+@example(argv=["bag", "repair", "bag"])
+@example(argv=["train", "--from-bag", "bag", "--out", "offline"])
+def test_cli_exits_0_1_2_without_traceback(argv, recording, capsys, long_work_stubbed):
+    with cli_workdir(recording):
+        rc = run_cli(argv, capsys)
+    if argv[:2] in (["bag", "info"], ["bag", "repair"]) and argv[2:] == ["bag"]:
+        assert rc == 0
+
+
+def test_cli_view_with_a_non_mapping_env_kwargs(recording, capsys, long_work_stubbed):
+    with cli_workdir(recording):
+        assert run_cli(["train", "--out", "run", "--set", "env_kwargs=5", "--view", "3"], capsys) == 2
+
+
+def test_cli_up_out_is_a_file(recording, capsys, long_work_stubbed):
+    with cli_workdir(recording):
+        assert run_cli(["up", "--out", "file.txt"], capsys) == 2
+
+
+def test_cli_infinite_record_split(recording, capsys, long_work_stubbed):
+    with cli_workdir(recording):
+        assert run_cli(["train", "--out", "run", "--record", "rec", "--record-split-mb", "inf"], capsys) == 2

@@ -5,19 +5,17 @@ transition the learner acknowledged (flushed to its bag) is lost. The report is 
 from __future__ import annotations
 
 import json
-import time
 from collections import defaultdict
 from pathlib import Path
 
-import pytest
 
 from hdrqn_ros.config import build_config
-from hdrqn_ros.graph import graph_processes, write_params
+from hdrqn_ros.graph import graph_processes
 from hdrqn_ros.recording.bag import bag_summary
 from hdrqn_ros.recording.transitions import BagReadStats, read_episodes
 from hdrqn_ros.supervisor import Supervisor
 
-from test_graph import ENV, domain, read_jsonl, wait_for  # noqa: F401  (domain: a fixture)
+from test_graph import ENV, domain, graph_params, read_jsonl, wait_for  # noqa: F401  (domain: a fixture)
 
 NODES = ["environment", "critic", "meta_controller", "sub_controller", "learner"]
 
@@ -47,10 +45,7 @@ def test_kill_each_node_in_turn_loses_no_acknowledged_transition(domain, tmp_pat
     cfg = build_config([], algo="hdrqn-v2", env=ENV, episodes=1000, seed=5, learning_starts=60, checkpoint_every=2,
                        eval_every=0, update_every=5, sub={"batch_size": 2}, meta={"batch_size": 2})
     run_dir, bag = tmp_path / "run", tmp_path / "learner-bag"
-    run_dir.mkdir()
-    config = run_dir / "config-in.yaml"
-    config.write_text(json.dumps(cfg.model_dump()))
-    params = write_params(cfg, run_dir, 1, config, extra={
+    params = graph_params(tmp_path, cfg, extra={
         "environment": {"step_log": str(tmp_path / "env_steps.jsonl"), "action_timeout": 1.0},
         "learner": {"transition_log": str(tmp_path / "transitions.jsonl"), "record": str(bag), "weights_every": 5}})
     specs = graph_processes(cfg, params, 1, respawn=True)

@@ -369,13 +369,19 @@ def check_episode(sub, meta) -> None:
     assert sub.frames.shape[1:] == (OBS, OBS, 3) and sub.segment_data["subgoal_image"].shape[1:] == (OBS, OBS, 3)
 
 
-def test_valid_stream_assembles_into_its_episodes():
+def assemble(episodes) -> tuple[TransitionAssembler, list]:
+    """Feed ``group_stream(episodes)`` to a learner-side assembler; returns it and the finished episodes."""
     finished = []
     asm = TransitionAssembler("/", CFG, NUM_SUBGOALS, lambda *ep: finished.append(ep), logger=LOG)
     handlers = asm.inputs()
-    for topic, msg in group_stream(VALID_EPISODES):
+    for topic, msg in group_stream(episodes):
         if topic in handlers:
             handlers[topic][1](msg)
+    return asm, finished
+
+
+def test_valid_stream_assembles_into_its_episodes():
+    asm, finished = assemble(VALID_EPISODES)
     assert [len(sub.fields["action"]) for _, sub, _, _ in finished] == [3, 2]
     assert [len(meta.fields["action"]) for _, _, meta, _ in finished] == [2, 1]
     for _, sub, meta, _ in finished:
@@ -388,12 +394,7 @@ def test_valid_stream_assembles_into_its_episodes():
 def test_learner_assembles_random_messages_without_crashing(episodes):
     """The learner node's per-group assembler (a bad message is logged and dropped): any
     stream of odd values gives no exception, and only episodes fit for training."""
-    finished = []
-    asm = TransitionAssembler("/", CFG, NUM_SUBGOALS, lambda *ep: finished.append(ep), logger=LOG)
-    handlers = asm.inputs()
-    for topic, msg in group_stream(episodes):
-        if topic in handlers:
-            handlers[topic][1](msg)
+    _, finished = assemble(episodes)
     for _, sub, meta, _ in finished:
         check_episode(sub, meta)
 

@@ -56,15 +56,20 @@ def read_jsonl(path: Path) -> list[dict]:
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 
 
-def start_graph(tmp_path: Path, algo: str = "hdrqn-v2", episodes: int = 8, respawn: bool = False,
-                learner: dict | None = None) -> Supervisor:
-    cfg = build_config([], algo=algo, env=ENV, episodes=episodes, seed=3, learning_starts=60, checkpoint_every=2,
-                       eval_episodes=4, update_every=5, sub={"batch_size": 2}, meta={"batch_size": 2})
+def graph_params(tmp_path: Path, cfg, groups: int = 1, extra: dict | None = None) -> Path:
+    """``tmp_path/run`` with the config as ``config-in.yaml`` and the graph's ``params.yaml`` (returned)."""
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     config = run_dir / "config-in.yaml"
     config.write_text(json.dumps(cfg.model_dump()))
-    params = write_params(cfg, run_dir, 1, config, extra={
+    return write_params(cfg, run_dir, groups, config, extra=extra)
+
+
+def start_graph(tmp_path: Path, algo: str = "hdrqn-v2", episodes: int = 8, respawn: bool = False,
+                learner: dict | None = None) -> Supervisor:
+    cfg = build_config([], algo=algo, env=ENV, episodes=episodes, seed=3, learning_starts=60, checkpoint_every=2,
+                       eval_episodes=4, update_every=5, sub={"batch_size": 2}, meta={"batch_size": 2})
+    params = graph_params(tmp_path, cfg, extra={
         "environment": {"step_log": str(tmp_path / "env_steps.jsonl")},
         "learner": {"transition_log": str(tmp_path / "transitions.jsonl"), "weights_every": 5, **(learner or {})},
         "meta_controller": {"subgoal_table": str(CONFIG / "nav2" / "subgoals.yaml")},

@@ -57,10 +57,10 @@ from pathlib import Path
 import pytest
 
 from hdrqn_ros.config import build_config
-from hdrqn_ros.graph import graph_processes, write_params
+from hdrqn_ros.graph import graph_processes
 from hdrqn_ros.supervisor import Supervisor
 
-from test_graph import (ENV, check_env_log_replays_in_process, check_transitions_match_env,  # noqa: F401
+from test_graph import (ENV, check_env_log_replays_in_process, check_transitions_match_env, graph_params,  # noqa: F401
                         domain, read_jsonl)
 
 SUBNET = "127.213.0"
@@ -227,11 +227,7 @@ def start_multihost_graph(tmp_path: Path, net: LoopbackHosts) -> Supervisor:
     """The hDRQNv2 graph with 2 groups: group i's processes run in actor host i, the learner in its host."""
     cfg = build_config([], algo="hdrqn-v2", env=ENV, episodes=10_000, seed=SEED, learning_starts=60,
                        checkpoint_every=10_000, update_every=5, sub={"batch_size": 2}, meta={"batch_size": 2})
-    run_dir = tmp_path / "run"
-    run_dir.mkdir()
-    config = run_dir / "config-in.yaml"
-    config.write_text(json.dumps(cfg.model_dump()))
-    params = write_params(cfg, run_dir, 2, config, extra={
+    params = graph_params(tmp_path, cfg, 2, extra={
         "learner": {"transition_log": str(tmp_path / "transitions.jsonl"), "weights_every": 5, "status_period": 0.5}})
     specs = []
     for spec in graph_processes(cfg, params, 2, respawn=False):

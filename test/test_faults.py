@@ -8,7 +8,6 @@ import json
 from collections import defaultdict
 from pathlib import Path
 
-
 from hdrqn_ros.config import build_config
 from hdrqn_ros.graph import graph_processes
 from hdrqn_ros.recording.bag import bag_summary

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib
 import logging
 import math
 import os
@@ -24,6 +25,7 @@ import yaml
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
+import hdrqn_ros
 from hdrqn_ros import cli
 from hdrqn_ros.config import ConfigError, TrainConfig, build_config, parse_set
 from hdrqn_ros.envs.registration import GRID_IDS, make_batch
@@ -716,6 +718,11 @@ def long_work_stubbed(monkeypatch):
     def started(*args, **kwargs):
         raise Started()
 
+    # import every module first: one imported while patched would keep the stub (``from x import f``)
+    root = Path(hdrqn_ros.__file__).parent
+    for file in sorted(f for f in root.rglob("*.py") if f.name != "__init__.py"):
+        with contextlib.suppress(ImportError):
+            importlib.import_module(".".join(("hdrqn_ros", *file.relative_to(root).with_suffix("").parts)))
     for target in LONG_WORK:
         monkeypatch.setattr(target, started)
 

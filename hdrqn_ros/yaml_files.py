@@ -10,14 +10,15 @@ import yaml
 def safe_load(text: str):
     """``yaml.safe_load(text)``, raising only :class:`yaml.YAMLError`: PyYAML's constructors
     also raise ValueError (``2001-13-01``, ``!!int x``), KeyError (``!!bool maybe``),
-    AttributeError (``!!timestamp x``) and, for deep nesting, RecursionError."""
+    AttributeError (``!!timestamp x``), IndexError (``a: !!int``) and, for deep nesting,
+    RecursionError."""
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError:
         raise
     except RecursionError:
         raise yaml.YAMLError("nested too deeply") from None
-    except (ValueError, KeyError, AttributeError, TypeError, OverflowError) as exc:
+    except (ValueError, KeyError, AttributeError, IndexError, TypeError, OverflowError) as exc:
         raise yaml.YAMLError(f"cannot construct a value: {type(exc).__name__}: {exc}") from None
 
 

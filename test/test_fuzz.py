@@ -759,3 +759,17 @@ def test_cli_up_out_is_a_file(recording, capsys, long_work_stubbed):
 def test_cli_infinite_record_split(recording, capsys, long_work_stubbed):
     with cli_workdir(recording):
         assert run_cli(["train", "--out", "run", "--record", "rec", "--record-split-mb", "inf"], capsys) == 2
+
+
+@pytest.mark.parametrize("argv, env, name", [
+    (["--ros-args", "-p", "ros_domain_id:=abc"], {}, "ros_domain_id"),
+    (["--ros-args", "-p", "max_message_bytes:=[1]"], {}, "max_message_bytes"),
+    ([], {"ROS_DOMAIN_ID": "x"}, "ROS_DOMAIN_ID"),
+])
+def test_middleware_settings_of_the_wrong_type_name_the_setting(argv, env, name, monkeypatch):
+    from hdrqn_ros.middleware.cyclone import CycloneMiddleware
+
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    with pytest.raises(ParameterError, match=name):
+        CycloneMiddleware(argv)

@@ -33,7 +33,7 @@ from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
 from hdrqn_ros.middleware.messages import DecodeError, decode, message_class
-from hdrqn_ros.middleware.port import DEFAULT_QOS, Middleware, Node, QoS
+from hdrqn_ros.middleware.port import DEFAULT_QOS, Middleware, Node, ParameterError, QoS
 from hdrqn_ros.middleware.ros_args import check_parameter_type, remap_and_resolve, split_ros_args
 
 LOOPBACK = "lo"
@@ -85,6 +85,16 @@ class _Publisher:
         if not isinstance(msg, self.cls):
             raise TypeError(f"{self.topic} carries {self.cls.__ros_type__}, not {type(msg).__name__}")
         self.writer.write(msg)
+
+
+def _int_setting(name: str, value) -> int:
+    """``value`` as an int (a parameter or environment variable), or a ParameterError naming it."""
+    try:
+        if isinstance(value, (bool, float)):
+            raise TypeError
+        return int(value)
+    except (TypeError, ValueError):
+        raise ParameterError(f"{name} must be an integer, got {value!r}") from None
 
 
 class _Subscription:
@@ -203,12 +213,14 @@ class CycloneMiddleware(Middleware):
         _setup_logging(self.ros_args.log_level)
         global_params = self.ros_args.parameters_for("", "/")
         if domain_id is None:
-            domain_id = int(global_params.get("ros_domain_id", os.environ.get("ROS_DOMAIN_ID", "0") or 0))
+            domain_id = _int_setting("ros_domain_id (or $ROS_DOMAIN_ID)",
+                                     global_params.get("ros_domain_id", os.environ.get("ROS_DOMAIN_ID", "0") or 0))
         if not 0 <= domain_id <= 232:
             raise ValueError(f"ROS_DOMAIN_ID must be in 0..232, got {domain_id}")
         interface = interface or global_params.get("dds_interface") or os.environ.get("HDRQN_DDS_INTERFACE")
         self.domain_id = domain_id
-        self.max_message_bytes = int(global_params.get("max_message_bytes", DEFAULT_MAX_MESSAGE_BYTES))
+        self.max_message_bytes = _int_setting("max_message_bytes",
+                                              global_params.get("max_message_bytes", DEFAULT_MAX_MESSAGE_BYTES))
         if interface is None and os.environ.get("CYCLONEDDS_URI"):
             self.interface = "CYCLONEDDS_URI"
             self._domain = Domain(domain_id, os.environ["CYCLONEDDS_URI"])

@@ -8,7 +8,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from hdrqn_ros import __version__
@@ -518,8 +520,24 @@ def _int(text: str, flag: str) -> int:
 COMMANDS = {"train": cmd_train, "up": cmd_up, "eval": cmd_eval, "experiment": cmd_experiment, "plot": cmd_plot, "bag": cmd_bag, "envs": cmd_envs}
 
 
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    # SIGTERM (kill, a job scheduler, `hdrqn experiment` stopping its runs) stops like Ctrl-C:
+    # training saves its checkpoint first. SIGINT alone does not reach background jobs.
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _interrupt) if main_thread else None
+    try:
+        return _run(args)
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _run(args) -> int:
     from hdrqn_ros.agents.controller import TrainingDiverged
     from hdrqn_ros.config import ConfigError
     from hdrqn_ros.recording.bag import BagError

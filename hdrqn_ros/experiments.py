@@ -16,6 +16,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 BASELINES = ("hdrqn-v2", "hdrqn-v1", "hdqn", "drqn", "dqn")
+RUN_METRICS = ("train.csv", "eval.csv", "visits.csv", "options.csv", "phase1.json", "phase1.md")
+"""A run's metrics files (:mod:`hdrqn_ros.training.metrics`, the phase-1 report)."""
 
 
 def config_dir() -> Path:
@@ -117,7 +119,9 @@ def _exp4() -> Experiment:
         "DQN and DRQN score 0; hDRQNv2 learns to pick up the key (figure 4.13a) and visits the subgoals on "
         "the way to it most (figure 4.13b); hDRQNv2 beats hDRQNv1 and hDQN.",
         "exp4_montezuma.yaml", tuple((algo, "fig4.12", algo, (), None) for algo in BASELINES),
-        {"fig4.12": "Montezuma's Revenge, first room"})
+        {"fig4.12": "Montezuma's Revenge, first room",
+         "fig4.13a": "success ratio of picking up the key (training)",
+         "fig4.13b": "steps at each subgoal per episode (phase 2)"})
 
 
 EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in (
@@ -170,8 +174,10 @@ def run_experiment(exp: Experiment, runs: list[RunSpec], out: Path, episodes: in
                    extra_sets: tuple[str, ...] = (), progress: bool = True, poll_s: float = 2.0) -> dict[str, int]:
     """Run ``runs`` as ``hdrqn train`` subprocesses, ``jobs`` at a time; logs go to ``out/NAME.log``.
 
-    Finished runs are skipped, interrupted ones continue with ``--resume``. Returns each
-    run's exit code (0 for skipped ones). Ctrl-C stops the children (they checkpoint first).
+    Finished runs are skipped, interrupted ones continue with ``--resume``; a run stopped
+    before its first checkpoint starts again (its partial metrics files are removed).
+    Returns each run's exit code (0 for skipped ones). Ctrl-C or SIGTERM stops the children
+    (they checkpoint first).
     """
     config = config_dir() / exp.config
     write_manifest(exp, runs, out, episodes, extra_sets)
@@ -206,6 +212,9 @@ def run_experiment(exp: Experiment, runs: list[RunSpec], out: Path, episodes: in
                 argv = r.argv(config, run_dir, episodes, extra_sets)
                 if (run_dir / "checkpoints" / "last.pt").exists():
                     argv.append("--resume")
+                else:
+                    for stale in RUN_METRICS:
+                        (run_dir / stale).unlink(missing_ok=True)
                 with open(out / f"{r.name}.log", "ab") as log:
                     running[r.name] = subprocess.Popen([sys.executable, "-m", "hdrqn_ros.cli", *argv],
                                                        stdout=log, stderr=subprocess.STDOUT,
@@ -222,7 +231,7 @@ def run_experiment(exp: Experiment, runs: list[RunSpec], out: Path, episodes: in
                 time.sleep(poll_s)
     except KeyboardInterrupt:
         for p in running.values():
-            p.send_signal(2)  # SIGINT: hdrqn train saves a checkpoint, --resume continues
+            p.terminate()  # SIGTERM: hdrqn train saves a checkpoint, --resume continues
         for p in running.values():
             p.wait()
         raise

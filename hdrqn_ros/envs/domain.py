@@ -49,6 +49,8 @@ class DomainBatch(Protocol):
     num_envs: int
     num_actions: int
     num_subgoals: int
+    subgoal_names: tuple[str, ...]  # one per subgoal index
+    subgoal_neighbours: tuple[tuple[int, ...], ...]  # per subgoal: those reachable from it directly
 
     def reset(self, seed: int | None = None) -> np.ndarray: ...
 

@@ -158,6 +158,9 @@ class GridWorldBatch:
         self.layout = layout
         self.n_goals = G = int(n_goals)
         self.num_subgoals = G
+        self.subgoal_names = GOAL_NAMES[:G]
+        # every goal can be walked to from every other one
+        self.subgoal_neighbours = tuple(tuple(h for h in range(G) if h != g) for g in range(G))
         self.max_steps = int(max_steps)
         self.walls = layout_walls(layout)
 

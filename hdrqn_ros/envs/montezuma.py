@@ -66,6 +66,12 @@ SUBGOAL_BOXES = np.array(
 )
 NUM_SUBGOALS = len(SUBGOAL_NAMES)
 KEY_SUBGOAL = 6
+SUBGOAL_NEIGHBOURS = ((1,), (0, 2, 3), (1,), (1, 4), (3, 5), (4, 6), (5,))
+"""For each subgoal, the subgoals reachable from it without passing through another box
+(the room's paths: left door - middle ladder top - right door on the top floor; middle
+ladder and rope - right ladder top - right ladder foot - skull floor - left ladder foot -
+left ladder and jump - key). The phase-1 table of section 4.5 reports reaching each
+subgoal from these."""
 
 ACTION_NAMES = (
     "NOOP", "FIRE", "UP", "RIGHT", "LEFT", "DOWN", "UPRIGHT", "UPLEFT", "DOWNRIGHT",
@@ -175,6 +181,7 @@ class MontezumaBatch:
     num_actions = NUM_ACTIONS
     num_subgoals = NUM_SUBGOALS
     subgoal_names = SUBGOAL_NAMES
+    subgoal_neighbours = SUBGOAL_NEIGHBOURS
     action_names = ACTION_NAMES
 
     def __init__(

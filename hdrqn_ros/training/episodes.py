@@ -5,15 +5,28 @@ Sub-controller episode: frames o_0..o_T (T+1 observations, each stored once); fi
 segment per option with its subgoal image (windows never cross an option boundary).
 Meta-controller episode: one step per option; frames are the meta inputs at each decision
 plus the input after the last option; ``reward`` is the option's summed extrinsic reward.
+Statistics also count the steps spent at each subgoal's place and log every option as
+:class:`OptionOutcome` (thesis figure 4.13b and the phase-1 table of section 4.5).
 """
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from hdrqn_ros.agents.replay import Episode
 from hdrqn_ros.training.rollout import StepRecord
+
+
+@dataclass(frozen=True)
+class OptionOutcome:
+    """One finished option: where it started, what it aimed at, how it ended."""
+
+    start: int  # subgoal whose place the agent stood on when the option began, or NO_SUBGOAL (-1)
+    subgoal: int  # the option's subgoal
+    steps: int  # primitive steps the option lasted
+    reached: bool  # the agent was at the subgoal's place when the option ended
 
 
 @dataclass
@@ -26,6 +39,8 @@ class EpisodeStats:
     intrinsic: float
     success: bool
     options: int
+    visits: Counter = field(default_factory=Counter)  # subgoal -> steps ending at its place
+    option_log: list[OptionOutcome] = field(default_factory=list)  # hierarchical agents only
 
 
 @dataclass
@@ -47,6 +62,10 @@ class _Open:
     classical: float = 0.0
     extrinsic: float = 0.0
     intrinsic: float = 0.0
+    visits: Counter = field(default_factory=Counter)
+    option_log: list = field(default_factory=list)
+    place: int = -1  # the subgoal place the agent stands on (after the last step), or -1
+    option_start: int = -1  # ``place`` when the current option began
 
 
 class EpisodeRecorder:
@@ -71,6 +90,7 @@ class EpisodeRecorder:
                 if self.hierarchical:
                     ep.segment_images.append(rec.subgoal_image[i].copy())
                     ep.meta_frames.append(rec.meta_input[i].copy())
+                    ep.option_start = ep.place
             ep.obs.append(rec.obs[i].copy())
             ep.action.append(rec.action[i])
             ep.reward.append(reward[i])
@@ -78,8 +98,13 @@ class EpisodeRecorder:
             ep.classical += float(env.classical[i])
             ep.extrinsic += float(env.extrinsic[i])
             ep.intrinsic += float(rec.intrinsic[i])
+            ep.place = int(env.at_subgoal[i])
+            if ep.place >= 0:
+                ep.visits[ep.place] += 1
             if self.hierarchical and rec.option_done[i]:
                 k = int(rec.option_steps[i])
+                ep.option_log.append(OptionOutcome(ep.option_start, int(rec.subgoal[i]), k,
+                                                   ep.place == int(rec.subgoal[i])))
                 ep.meta_action.append(rec.subgoal[i])
                 ep.meta_reward.append(rec.option_extrinsic[i])
                 ep.meta_terminal.append(env.terminated[i])
@@ -111,5 +136,6 @@ class EpisodeRecorder:
                         "next_invalid": np.asarray(ep.meta_next_invalid, np.int8)},
             )
         stats = EpisodeStats(steps=t, classical=ep.classical, extrinsic=ep.extrinsic, intrinsic=ep.intrinsic,
-                             success=bool(env.success[i]), options=len(ep.segment_starts))
+                             success=bool(env.success[i]), options=len(ep.segment_starts), visits=ep.visits,
+                             option_log=ep.option_log)
         return i, sub, meta, stats

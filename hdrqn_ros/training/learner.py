@@ -30,14 +30,14 @@ def build_agent(cfg: TrainConfig) -> Agent:
     return Agent(cfg, probe.num_actions, probe.num_subgoals)
 
 
-def evaluate(agent: Agent, cfg: TrainConfig, episodes: int, seed: int, epsilon: float = 0.0, sink=None,
-             num_envs: int | None = None) -> dict:
-    """Greedy (``epsilon`` 0) episodes on ``num_envs`` parallel environments of a fresh
-    batch (default: one per episode); each environment plays ``ceil(episodes / num_envs)``.
+def play(agent: Agent, cfg: TrainConfig, episodes: int, seed: int, epsilon: float = 0.0,
+         meta_epsilon: float | None = None, sink=None, num_envs: int | None = None) -> list[EpisodeStats]:
+    """Play ``episodes`` episodes on ``num_envs`` parallel environments of a fresh batch
+    (default: one per episode); each environment plays ``ceil(episodes / num_envs)``.
+    ``epsilon``: the sub-controller's (and a flat agent's) exploration; ``meta_epsilon``:
+    the meta-controller's (default ``epsilon``; 1 picks subgoals at random, as phase 1).
     ``sink``: also hand it every step (``write(StepRecord)``), e.g. to record them.
-
-    Returns the means of success (ordered success / key), steps, rewards over episodes.
-    """
+    Returns each episode's statistics (env 0's episodes first)."""
     n = min(num_envs or episodes, episodes)
     quota = -(-episodes // n)
     batch = make_batch(cfg.env, n, **cfg.env_kwargs)
@@ -46,15 +46,26 @@ def evaluate(agent: Agent, cfg: TrainConfig, episodes: int, seed: int, epsilon: 
     results: dict[tuple[int, int], EpisodeStats] = {}
     played = np.zeros(n, np.int64)
     rng = np.random.default_rng(seed)
+    eps_meta = epsilon if meta_epsilon is None else meta_epsilon
     while len(results) < n * quota:
-        record = rollout.step(epsilon, epsilon, rng)
+        record = rollout.step(epsilon, eps_meta, rng)
         if sink is not None:
             sink.write(record)
         for i, _, _, stats in recorder.add(record):
             if played[i] < quota:
                 results[(i, int(played[i]))] = stats
             played[i] += 1
-    rows = list(results.values())
+    return [results[k] for k in sorted(results)]
+
+
+def evaluate(agent: Agent, cfg: TrainConfig, episodes: int, seed: int, epsilon: float = 0.0, sink=None,
+             num_envs: int | None = None) -> dict:
+    """Greedy (``epsilon`` 0) episodes (see :func:`play`), summarised by :func:`summarise`."""
+    return summarise(play(agent, cfg, episodes, seed, epsilon, sink=sink, num_envs=num_envs))
+
+
+def summarise(rows: list[EpisodeStats]) -> dict:
+    """The means of success (ordered success / key), steps and rewards over episodes."""
     return {"episodes": len(rows), "success": float(np.mean([r.success for r in rows])),
             "steps": float(np.mean([r.steps for r in rows])), "reward": float(np.mean([r.classical for r in rows])),
             "extrinsic": float(np.mean([r.extrinsic for r in rows])),
@@ -73,7 +84,9 @@ class Learner:
         torch.set_num_threads(cfg.torch_threads)
         torch.manual_seed(cfg.seed)
         self.rng = np.random.default_rng(cfg.seed)
-        self.agent = build_agent(cfg)
+        probe = make_batch(cfg.env, 1, **cfg.env_kwargs)
+        self.agent = Agent(cfg, probe.num_actions, probe.num_subgoals)
+        self.subgoal_names, self.subgoal_neighbours = probe.subgoal_names, probe.subgoal_neighbours
         self.episodes = 0
         self.env_steps = 0
         self.meta_begin: int | None = None  # env step at which the meta-controller starts learning
@@ -84,7 +97,8 @@ class Learner:
                                   f"or choose another --out")
         self.run_dir.mkdir(parents=True, exist_ok=True)
         (self.run_dir / "config.yaml").write_text(yaml.safe_dump(cfg.model_dump(), sort_keys=False))
-        self.log = MetricsLog(self.run_dir, tensorboard=tensorboard)
+        self.log = MetricsLog(self.run_dir, tensorboard=tensorboard, subgoal_names=self.subgoal_names,
+                              options=self.agent.meta is not None)
         self.last_eval: dict | None = None
         self._pending_updates = 0
         self._meta_thread = ThreadPoolExecutor(1, thread_name_prefix="meta-update") if cfg.parallel_updates else None
@@ -146,8 +160,10 @@ class Learner:
 
     def log_episode(self, stats: EpisodeStats, eps_sub: float, eps_meta: float, wall_s: float,
                     episode: int | None = None) -> None:
-        """One row of ``train.csv`` / TensorBoard for a finished episode."""
-        self.log.train({"episode": self.episodes if episode is None else episode, "env_steps": self.env_steps,
+        """One row of ``train.csv`` / TensorBoard (and of ``visits.csv``, ``options.csv``) for a finished episode."""
+        episode = self.episodes if episode is None else episode
+        self.log.subgoals(episode, stats.visits, stats.option_log)
+        self.log.train({"episode": episode, "env_steps": self.env_steps,
                         "steps": stats.steps, "reward": stats.classical, "extrinsic": stats.extrinsic,
                         "intrinsic": stats.intrinsic, "success": int(stats.success), "options": stats.options,
                         "eps_sub": round(eps_sub, 4), "eps_meta": round(eps_meta, 4), "wall_s": round(wall_s, 2)})
@@ -193,4 +209,4 @@ class Learner:
                        "wall_s": round(time.perf_counter() - start, 2), "updates": self.agent.sub.updates})
         return result
 
-__all__ = ["Learner", "evaluate", "build_agent", "EVAL_SEED_OFFSET"]
+__all__ = ["Learner", "evaluate", "play", "summarise", "build_agent", "EVAL_SEED_OFFSET"]

@@ -1,4 +1,6 @@
-"""Run-directory metrics: per-episode CSV, evaluation CSV and TensorBoard scalars."""
+"""Run-directory metrics: per-episode CSV, evaluation CSV and TensorBoard scalars; for
+domains with subgoals also ``visits.csv`` (per episode: steps at each subgoal's place) and
+``options.csv`` (one row per option of a hierarchical agent)."""
 from __future__ import annotations
 
 import csv
@@ -9,18 +11,28 @@ TRAIN_COLUMNS = ["episode", "env_steps", "steps", "reward", "extrinsic", "intrin
                  "options", "eps_sub", "eps_meta", "wall_s"]
 EVAL_COLUMNS = ["episode", "env_steps", "episodes", "success", "steps", "reward", "extrinsic",
                 "intrinsic", "wall_s", "updates"]
+OPTION_COLUMNS = ["episode", "start", "subgoal", "steps", "reached"]
 
 
 class MetricsLog:
     """Appends rows to ``train.csv`` / ``eval.csv`` in ``run_dir`` and mirrors them to
-    TensorBoard (``run_dir/tb``). Appending keeps earlier rows when a run is resumed."""
+    TensorBoard (``run_dir/tb``). Appending keeps earlier rows when a run is resumed.
+    ``subgoal_names``: the domain's subgoals, the columns of ``visits.csv``; ``options``:
+    also write ``options.csv`` (hierarchical agents)."""
 
-    def __init__(self, run_dir: Path, tensorboard: bool = True):
+    def __init__(self, run_dir: Path, tensorboard: bool = True, subgoal_names: tuple[str, ...] = (),
+                 options: bool = False):
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.subgoal_names = tuple(subgoal_names)
         self._files = {}
         self._writers = {}
-        for name, cols in (("train", TRAIN_COLUMNS), ("eval", EVAL_COLUMNS)):
+        tables = [("train", TRAIN_COLUMNS), ("eval", EVAL_COLUMNS)]
+        if self.subgoal_names:
+            tables.append(("visits", ["episode", *self.subgoal_names]))
+        if options:
+            tables.append(("options", OPTION_COLUMNS))
+        for name, cols in tables:
             path = self.run_dir / f"{name}.csv"
             new = not path.exists() or path.stat().st_size == 0
             f = open(path, "a", newline="", encoding="utf-8")
@@ -47,6 +59,20 @@ class MetricsLog:
 
     def train(self, row: dict) -> None:
         self._write("train", row, "episode")
+
+    def subgoals(self, episode: int, visits: dict[int, int], options) -> None:
+        """``visits.csv`` and ``options.csv`` rows of one episode (``options``: OptionOutcome list)."""
+        if "visits" in self._writers:
+            self._writers["visits"].writerow({"episode": episode, **{name: visits.get(g, 0)
+                                                                     for g, name in enumerate(self.subgoal_names)}})
+            self._files["visits"].flush()
+        if "options" not in self._writers:
+            return
+        for o in options:
+            self._writers["options"].writerow({"episode": episode, "start": o.start, "subgoal": o.subgoal,
+                                               "steps": o.steps, "reached": int(o.reached)})
+        if options:
+            self._files["options"].flush()
 
     def eval(self, row: dict, step_key: str = "episode") -> None:
         """An evaluation row; TensorBoard's x axis is ``row[step_key]`` (offline runs: updates)."""

@@ -98,3 +98,81 @@ def plot_runs(runs: list[Path], out: Path, window: int = 200, labels: dict[str, 
     fig.savefig(out, dpi=90)
     plt.close(fig)
     return out
+
+
+def _figure(ncols: int = 1, width: float = 8.0):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, ncols, figsize=(width, 4.5), squeeze=False)
+    return plt, fig, axes[0]
+
+
+def plot_success_ratio(groups: dict[str, list[Path]], out: Path, window: int = 200, title: str = "",
+                       phase_end: int | None = None) -> Path:
+    """Thesis figure 4.13a: the training success ratio (Montezuma: the key was picked up)
+    per episode as a moving average over ``window`` episodes; ``groups``: label -> run
+    directories (seeds: mean line, min-max band). ``phase_end``: draw the end of phase 1."""
+    plt, fig, (ax,) = _figure()
+    for i, (label, runs) in enumerate(groups.items()):
+        tables = [t for t in (read_csv(r / "train.csv") for r in runs) if t]
+        if not tables:
+            continue
+        n = min(len(t["episode"]) for t in tables)
+        curves = np.stack([moving_average(t["success"][:n], window) for t in tables])
+        x = tables[0]["episode"][:n]
+        ax.plot(x, curves.mean(0), color=f"C{i}", label=f"{label} (n={len(tables)})")
+        if len(tables) > 1:
+            ax.fill_between(x, curves.min(0), curves.max(0), color=f"C{i}", alpha=0.2)
+    if phase_end:
+        ax.axvline(phase_end, color="grey", ls="--", lw=1)
+        ax.annotate(" end of phase 1", (phase_end, 0.95), xycoords=("data", "axes fraction"), fontsize=8, color="grey")
+    ax.set_xlabel("episode")
+    ax.set_ylabel(f"success ratio (moving average, {window} episodes)")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out
+
+
+def plot_subgoal_visits(groups: dict[str, list[Path]], out: Path, first_episode: int = 1, title: str = "") -> Path:
+    """Thesis figure 4.13b: mean steps per episode the agent spent at each subgoal's place
+    (``visits.csv``, episodes >= ``first_episode``), one bar per label (mean over seeds,
+    whiskers min-max). Labels whose runs have no ``visits.csv`` are left out."""
+    from hdrqn_ros.training.subgoals import visits_per_episode
+
+    per_label = {}
+    for label, runs in groups.items():
+        seeds = [v for v in (visits_per_episode(r / "visits.csv", first_episode) for r in runs) if v]
+        if seeds:
+            per_label[label] = seeds
+    if not per_label:
+        raise FileNotFoundError(f"no run of {', '.join(groups)} has a visits.csv")
+    names = list(next(iter(per_label.values()))[0])
+    plt, fig, (ax,) = _figure(width=max(8.0, 1.3 * len(names)))
+    width = 0.8 / len(per_label)
+    x = np.arange(len(names))
+    for i, (label, seeds) in enumerate(per_label.items()):
+        values = np.array([[s[name] for name in names] for s in seeds])
+        mean = values.mean(0)
+        err = np.stack([mean - values.min(0), values.max(0) - mean])
+        ax.bar(x + (i - (len(per_label) - 1) / 2) * width, mean, width, yerr=err if len(seeds) > 1 else None,
+               color=f"C{i}", label=f"{label} (n={len(seeds)})", capsize=2)
+    ax.set_xticks(x, names, rotation=20, ha="right", fontsize=8)
+    ax.set_ylabel("steps per episode at the subgoal")
+    ax.set_yscale("symlog", linthresh=1.0)
+    ax.grid(alpha=0.3, axis="y")
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(title + (f" (episodes >= {first_episode})" if first_episode > 1 else ""), fontsize=10)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out

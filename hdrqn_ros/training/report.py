@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrqn_ros.training.plots import plot_runs, read_csv
+from hdrqn_ros.training.plots import plot_runs, plot_subgoal_visits, plot_success_ratio, read_csv
+from hdrqn_ros.training.subgoals import option_table_markdown
 
 
 def load_manifest(exp_dir: Path) -> dict:
@@ -95,25 +96,65 @@ def markdown_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _phase1_end(run_dir: Path) -> int:
+    """The run's ``sub_only_episodes`` (0: one phase), from its ``config.yaml``."""
+    import yaml
+
+    path = run_dir / "config.yaml"
+    data = yaml.safe_load(path.read_text()) if path.exists() else None
+    return int((data or {}).get("sub_only_episodes") or 0)
+
+
+def phase1_sections(exp_dir: Path, runs: list[dict]) -> str:
+    """Markdown of the phase-1 option tables (``phase1.json``) of the runs that have one."""
+    parts = []
+    for run in runs:
+        path = Path(exp_dir) / run["dir"] / "phase1.json"
+        if not path.exists():
+            continue
+        p = json.loads(path.read_text())
+        first, last = p["training_episodes"]
+        parts.append(f"## Phase 1 of {run['dir']}: the sub-controller after {p['phase1_episodes']} episodes "
+                     f"({p['env_steps']} env steps)\n\nGreedy sub-controller, subgoals at random, "
+                     f"{p['greedy_episodes']} held-out episodes:\n\n{option_table_markdown(p['greedy'])}\n\n"
+                     f"Training (epsilon-greedy), episodes {first}-{last}:\n\n{option_table_markdown(p['training'])}")
+    return "\n\n".join(parts)
+
+
 def report_experiment(exp_dir: Path, out_dir: Path | None = None, window: int = 200) -> tuple[list[Path], str]:
     """Draw one figure per thesis figure of the experiment and write ``exp_dir/table.md``.
 
-    Returns (figure paths, the Markdown table). Figures go to ``out_dir`` (default ``exp_dir``).
+    Curve figures (4.6-4.12) show the runs whose ``figure`` they are; the Montezuma figures
+    4.13a (success ratio over training) and 4.13b (steps at each subgoal in phase 2) show
+    every run. ``table.md`` also has the phase-1 tables of two-phase runs.
+    Returns (figure paths, the Markdown text). Figures go to ``out_dir`` (default ``exp_dir``).
     """
     exp_dir = Path(exp_dir)
     out_dir = Path(out_dir) if out_dir is not None else exp_dir
     manifest = load_manifest(exp_dir)
     figures: dict[str, list[dict]] = defaultdict(list)
-    for run in manifest["runs"]:
-        if read_csv(exp_dir / run["dir"] / "train.csv"):
-            figures[run["figure"]].append(run)
+    started = [run for run in manifest["runs"] if read_csv(exp_dir / run["dir"] / "train.csv")]
+    for run in started:
+        figures[run["figure"]].append(run)
+    groups: dict[str, list[Path]] = defaultdict(list)
+    for run in started:
+        groups[run["label"]].append(exp_dir / run["dir"])
+    phase_end = max((_phase1_end(exp_dir / r["dir"]) for r in started), default=0)
     paths = []
-    for figure, runs in figures.items():
-        labels = {str(exp_dir / r["dir"]): r["label"] for r in runs}
-        title = manifest.get("figures", {}).get(figure, "")
+    for figure, title in manifest.get("figures", {}).items():
         out = out_dir / f"{manifest['experiment']}_{figure.replace('.', '_')}.png"
-        paths.append(plot_runs([exp_dir / r["dir"] for r in runs], out, window=window, labels=labels,
-                               title=f"{figure}: {title}" if title else figure))
+        heading = f"{figure}: {title}"
+        if figure == "fig4.13a" and started:
+            paths.append(plot_success_ratio(groups, out, window=window, title=heading, phase_end=phase_end or None))
+        elif figure == "fig4.13b" and started:
+            paths.append(plot_subgoal_visits(groups, out, first_episode=phase_end + 1, title=heading))
+        elif figures.get(figure):
+            runs = figures[figure]
+            labels = {str(exp_dir / r["dir"]): r["label"] for r in runs}
+            paths.append(plot_runs([exp_dir / r["dir"] for r in runs], out, window=window, labels=labels,
+                                   title=heading))
     table = markdown_table(experiment_rows(exp_dir))
-    (exp_dir / "table.md").write_text(f"# {manifest['title']}\n\n{table}\n")
-    return paths, table
+    phase1 = phase1_sections(exp_dir, started)
+    text = table + (f"\n\n{phase1}" if phase1 else "")
+    (exp_dir / "table.md").write_text(f"# {manifest['title']}\n\n{text}\n")
+    return paths, text

@@ -3,6 +3,7 @@ of each controller every ``update_every`` env steps, greedy evaluations, checkpo
 from __future__ import annotations
 
 import json
+import sys
 import time
 from collections import deque
 from contextlib import suppress
@@ -14,8 +15,12 @@ import numpy as np
 from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.episodes import EpisodeRecorder, EpisodeStats
-from hdrqn_ros.training.learner import Learner, build_agent, evaluate
+from hdrqn_ros.training.learner import EVAL_SEED_OFFSET, Learner, build_agent, evaluate, play
 from hdrqn_ros.training.rollout import Rollout, StepRecord
+from hdrqn_ros.training.subgoals import option_table, option_table_markdown, read_options
+
+PHASE1_TRAINING_SHARE = 0.2
+"""The phase-1 report's training table covers this last share of phase 1's episodes."""
 
 
 class StepSink(Protocol):
@@ -83,6 +88,8 @@ class Trainer(Learner):
                        desc=f"{cfg.algo} {cfg.env.split('/')[-1]}")
         next_eval = self._next_multiple(cfg.eval_every)
         next_ckpt = self._next_multiple(cfg.checkpoint_every)
+        phase1_pending = (cfg.sub_only_episodes > 0 and self.agent.meta is not None
+                          and not (self.run_dir / "phase1.json").exists())
         try:
             while self.episodes < cfg.episodes:
                 for i, (stats, eps_sub, eps_meta) in enumerate(finished := self.step()):
@@ -97,6 +104,9 @@ class Trainer(Learner):
                 if self.episodes >= next_ckpt:
                     self.save()
                     next_ckpt = self._next_multiple(cfg.checkpoint_every)
+                if phase1_pending and self.episodes >= cfg.sub_only_episodes:
+                    self.phase1_report()
+                    phase1_pending = False
                 if bar is not None and finished:
                     rate = (self.env_steps - start_steps) / max(time.perf_counter() - start, 1e-9)
                     post = {"steps/s": f"{rate:.0f}", "succ": f"{np.mean([r.success for r in recent]):.2f}",
@@ -125,6 +135,30 @@ class Trainer(Learner):
         (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
         self.log.close()
         return summary
+
+    def phase1_report(self) -> dict:
+        """End of phase 1 (thesis section 4.5): how well the sub-controller moves between
+        subgoals, as option tables (:func:`option_table`) of ``cfg.eval_episodes`` held-out
+        episodes with the greedy sub-controller and subgoals at random, and of the last
+        ``PHASE1_TRAINING_SHARE`` of phase 1's training episodes. Writes ``phase1.json`` and
+        ``phase1.md``; returns the JSON's content."""
+        cfg = self.cfg
+        greedy = play(self.agent, cfg, cfg.eval_episodes, cfg.seed + EVAL_SEED_OFFSET, epsilon=0.0, meta_epsilon=1.0)
+        first = int(cfg.sub_only_episodes * (1 - PHASE1_TRAINING_SHARE)) + 1
+        training = read_options(self.run_dir / "options.csv", first, cfg.sub_only_episodes)
+        tables = {"greedy": option_table([o for s in greedy for o in s.option_log], self.subgoal_names,
+                                         self.subgoal_neighbours),
+                  "training": option_table(training, self.subgoal_names, self.subgoal_neighbours)}
+        report = {"phase1_episodes": cfg.sub_only_episodes, "env_steps": self.env_steps,
+                  "greedy_episodes": len(greedy), "training_episodes": [first, cfg.sub_only_episodes], **tables}
+        (self.run_dir / "phase1.json").write_text(json.dumps(report, indent=2))
+        text = (f"# Phase 1 of {cfg.algo} on {cfg.env}: the sub-controller after {cfg.sub_only_episodes} episodes "
+                f"({self.env_steps} env steps)\n\nGreedy sub-controller, subgoals at random, {len(greedy)} held-out "
+                f"episodes:\n\n{option_table_markdown(tables['greedy'])}\n\nTraining (epsilon-greedy), episodes "
+                f"{first}-{cfg.sub_only_episodes}:\n\n{option_table_markdown(tables['training'])}\n")
+        (self.run_dir / "phase1.md").write_text(text)
+        print(text, file=sys.stderr)
+        return report
 
 
 __all__ = ["Trainer", "evaluate", "build_agent"]

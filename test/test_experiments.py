@@ -5,10 +5,12 @@ import csv
 import json
 import subprocess
 import sys
+import time
 
 import pytest
+import torch
 
-from hdrqn_ros.experiments import EXPERIMENTS, config_dir
+from hdrqn_ros.experiments import EXPERIMENTS, config_dir, episodes_logged
 
 HDRQN = [sys.executable, "-m", "hdrqn_ros.cli"]
 
@@ -70,3 +72,64 @@ def test_experiment_runs_resumes_and_reports(tmp_path):
 def test_bad_arguments_exit_2_with_a_message(args, message):
     run = hdrqn(*args, timeout=60)
     assert run.returncode == 2 and message in run.stderr and "Traceback" not in run.stderr
+
+
+def test_montezuma_experiment_reports_phase1_and_figures_4_13(tmp_path):
+    """Real ALE, tiny budget: two-phase hDRQNv2 and DQN; the report has figure 4.12, 4.13a
+    (key success over training), 4.13b (steps at each subgoal) and hDRQNv2's phase-1 tables."""
+    out = tmp_path / "exp4"
+    run = hdrqn("experiment", "exp4-montezuma", "--algos", "hdrqn-v2", "dqn", "--seeds", "0", "--episodes", "4",
+                "--jobs", "2", "--out", str(out), "--no-progress", "--set", "sub_only_episodes=2",
+                "--set", "num_envs=2", "--set", "eval_episodes=2", "--set", "learning_starts=20",
+                "--set", "env_kwargs={max_steps: 25}")
+    assert run.returncode == 0, run.stderr
+    for name in ("hdrqn-v2-s0", "dqn-s0"):
+        with open(out / name / "visits.csv") as f:
+            rows = list(csv.DictReader(f))
+        assert list(rows[0])[1:] == ["left-door", "top-mid-ladder", "right-door", "top-right-ladder",
+                                     "bottom-right-ladder", "bottom-left-ladder", "key"]
+        assert [int(r["episode"]) for r in rows] == [1, 2, 3, 4]
+    assert (out / "hdrqn-v2-s0" / "phase1.json").exists() and not (out / "dqn-s0" / "phase1.json").exists()
+    plot = hdrqn("plot", str(out))
+    assert plot.returncode == 0, plot.stderr
+    for fig in ("fig4_12", "fig4_13a", "fig4_13b"):
+        assert (out / f"exp4-montezuma_{fig}.png").stat().st_size > 10_000, fig
+    table = (out / "table.md").read_text()
+    assert "## Phase 1 of hdrqn-v2-s0: the sub-controller after 2 episodes" in table
+    assert "| 6 key | bottom-left-ladder |" in table and "Phase 1 of dqn" not in table
+
+
+def test_sigterm_stops_training_with_a_checkpoint_and_resume_continues(tmp_path):
+    run_dir = tmp_path / "run"
+    argv = [*HDRQN, "train", "--algo", "dqn", "--episodes", "100000", "--out", str(run_dir), "--no-progress",
+            "--set", "num_envs=2", "--set", "eval_every=0", "--set", "checkpoint_every=100000"]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while episodes_logged(run_dir) < 3 and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.2)
+        proc.terminate()
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130 and "interrupted" in err, err
+    saved = torch.load(run_dir / "checkpoints" / "last.pt", weights_only=True)["progress"]["episodes"]
+    assert saved >= 3
+    more = hdrqn("train", "--algo", "dqn", "--episodes", str(saved + 2), "--out", str(run_dir), "--resume",
+                 "--no-progress", "--set", "num_envs=2", "--set", "eval_every=0")
+    assert more.returncode == 0, more.stderr
+    with open(run_dir / "train.csv") as f:
+        assert [int(r["episode"]) for r in csv.DictReader(f)] == list(range(1, saved + 3))
+
+
+def test_a_run_stopped_before_its_first_checkpoint_starts_clean(tmp_path):
+    out = tmp_path / "exp"
+    stale = out / "dqn-s0"
+    stale.mkdir(parents=True)
+    (stale / "train.csv").write_text("episode,env_steps\n1,50\n2,100\n")
+    run = hdrqn("experiment", "exp3-gridworld-2goals", "--algos", "dqn", "--seeds", "0", "--episodes", "2",
+                "--out", str(out), "--no-progress", "--set", "eval_episodes=2", "--set", "num_envs=2")
+    assert run.returncode == 0, run.stderr
+    with open(stale / "train.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["episode"]) for r in rows] == [1, 2] and "reward" in rows[0]

@@ -99,6 +99,11 @@ def _add_eval(sub) -> None:
     p.add_argument("--seed", type=int, default=12345)
     p.add_argument("--num-envs", type=int, help="environments played in parallel (default: one per episode)")
     p.add_argument("--epsilon", type=float, default=0.0, help="exploration of both controllers (default 0: greedy)")
+    p.add_argument("--meta-epsilon", type=float, metavar="E",
+                   help="the meta-controller's exploration (default: --epsilon; 1: subgoals at random, as phase 1)")
+    p.add_argument("--subgoals", action="store_true",
+                   help="also report, per subgoal, how often the options aimed at it reached it (from its "
+                        "neighbours and from anywhere) and the steps spent at each subgoal")
     p.add_argument("--record", metavar="BAG_DIR", help="record the episodes' transitions to this new bag")
 
 
@@ -329,20 +334,20 @@ def _graph_status(run_dir: Path) -> str:
 
 
 def cmd_eval(args) -> int:
-    from hdrqn_ros.config import TrainConfig
-    from hdrqn_ros.training.checkpoint import load_checkpoint
-    from hdrqn_ros.training.learner import build_agent, evaluate
+    from collections import Counter
+
+    from hdrqn_ros.envs.registration import make_batch
+    from hdrqn_ros.training.learner import load_trained_agent, play, summarise
+    from hdrqn_ros.training.subgoals import option_table, option_table_markdown
 
     if args.episodes < 1:
         raise UsageError(f"--episodes must be >= 1, got {args.episodes}")
     if args.num_envs is not None and args.num_envs < 1:
         raise UsageError(f"--num-envs must be >= 1, got {args.num_envs}")
-    if not 0.0 <= args.epsilon <= 1.0:
-        raise UsageError(f"--epsilon must be in [0, 1], got {args.epsilon}")
-    payload = load_checkpoint(args.checkpoint)
-    cfg = TrainConfig.model_validate({**payload["config"], "device": "cpu"})
-    agent = build_agent(cfg)
-    agent.load_state_dict(payload["agent"])
+    for flag, value in (("--epsilon", args.epsilon), ("--meta-epsilon", args.meta_epsilon)):
+        if value is not None and not 0.0 <= value <= 1.0:  # also NaN
+            raise UsageError(f"{flag} must be in [0, 1], got {value}")
+    cfg, agent = load_trained_agent(args.checkpoint)
     sink = None
     if args.record:
         from hdrqn_ros.recording.transitions import TransitionRecorder
@@ -350,12 +355,22 @@ def cmd_eval(args) -> int:
         sink = TransitionRecorder(args.record, cfg, min(args.num_envs or args.episodes, args.episodes),
                                   source=f"hdrqn eval --checkpoint {args.checkpoint} --epsilon {args.epsilon}")
     try:
-        result = evaluate(agent, cfg, args.episodes, args.seed, epsilon=args.epsilon, sink=sink,
-                          num_envs=args.num_envs)
+        episodes = play(agent, cfg, args.episodes, args.seed, epsilon=args.epsilon, meta_epsilon=args.meta_epsilon,
+                        sink=sink, num_envs=args.num_envs)
     finally:
         if sink is not None:
             sink.close()
-    print(json.dumps({"algo": cfg.algo, "env": cfg.env, **result}, indent=2))
+    result = {"algo": cfg.algo, "env": cfg.env, **summarise(episodes)}
+    if args.subgoals:
+        domain = make_batch(cfg.env, 1, **cfg.env_kwargs)
+        visits = sum((e.visits for e in episodes), Counter())
+        result["steps_at_subgoal"] = {name: visits[g] / len(episodes) for g, name in enumerate(domain.subgoal_names)}
+        if agent.meta is not None:
+            rows = option_table([o for e in episodes for o in e.option_log], domain.subgoal_names,
+                                domain.subgoal_neighbours)
+            result["options"] = rows
+            print(option_table_markdown(rows), file=sys.stderr)
+    print(json.dumps(result, indent=2))
     if sink is not None:
         print(f"recorded {sink.bag.messages} messages to {sink.path}", file=sys.stderr)
     return 0

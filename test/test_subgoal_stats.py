@@ -119,3 +119,19 @@ def test_one_phase_or_flat_training_has_no_phase1_report(algo, tmp_path):
     assert not (tmp_path / "phase1.json").exists()
     assert (tmp_path / "options.csv").exists() == (algo != "drqn")
     assert len(_rows(tmp_path / "visits.csv")) == 4
+
+
+def test_eval_reports_subgoals_with_random_subgoals(tmp_path, capsys):
+    from hdrqn_ros.cli import main
+
+    Trainer(_tiny(episodes=2, sub_only_episodes=0), tmp_path, progress=False, tensorboard=False).run()
+    ckpt = str(tmp_path / "checkpoints" / "last.pt")
+    assert main(["eval", "--checkpoint", ckpt, "--episodes", "4", "--meta-epsilon", "1", "--subgoals"]) == 0
+    out, err = capsys.readouterr()
+    result = json.loads(out)
+    assert result["episodes"] == 4 and list(result["steps_at_subgoal"]) == ["blue", "green", "cyan"]
+    rows = result["options"]
+    assert [r["name"] for r in rows] == ["blue", "green", "cyan"] and sum(r["all_attempts"] for r in rows) >= 4
+    assert "| 2 cyan | blue, green |" in err
+    assert main(["eval", "--checkpoint", ckpt, "--meta-epsilon", "nan"]) == 2
+    assert "--meta-epsilon must be in [0, 1]" in capsys.readouterr().err

@@ -29,11 +29,9 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from PIL import Image  # noqa: E402
 
-from hdrqn_ros.config import TrainConfig  # noqa: E402
 from hdrqn_ros.envs.gridworld import ACTIONS, GOAL_NAMES, MAP_SIZE  # noqa: E402
 from hdrqn_ros.envs.registration import make_batch  # noqa: E402
-from hdrqn_ros.training.checkpoint import load_checkpoint  # noqa: E402
-from hdrqn_ros.training.learner import build_agent, evaluate  # noqa: E402
+from hdrqn_ros.training.learner import evaluate, load_trained_agent  # noqa: E402
 
 IMG = Path(__file__).resolve().parent
 
@@ -103,10 +101,7 @@ def main():
     p.add_argument("--out-gif", default=str(IMG / "episode_gridworld.gif"))
     args = p.parse_args()
     torch.set_num_threads(1)
-    payload = load_checkpoint(args.checkpoint)
-    cfg = TrainConfig.model_validate({**payload["config"], "device": "cpu"})
-    agent = build_agent(cfg)
-    agent.load_state_dict(payload["agent"])
+    cfg, agent = load_trained_agent(args.checkpoint)
     view = cfg.env_kwargs.get("view", 5)
     for seed in range(args.seed, args.seed + args.episodes_to_try):
         steps, maps, pos, goals, success = play(cfg, agent, seed)

@@ -24,10 +24,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from PIL import Image, ImageDraw  # noqa: E402
 
-from hdrqn_ros.config import TrainConfig  # noqa: E402
 from hdrqn_ros.envs.montezuma import SUBGOAL_NAMES, VIEW, MontezumaBatch, ram_to_pixel, subgoal_box_pixels  # noqa: E402
-from hdrqn_ros.training.checkpoint import load_checkpoint  # noqa: E402
-from hdrqn_ros.training.learner import build_agent, play  # noqa: E402
+from hdrqn_ros.training.learner import load_trained_agent, play  # noqa: E402
 
 IMG = Path(__file__).resolve().parent
 BOXES = subgoal_box_pixels()  # (7, 4): row0, row1, col0, col1

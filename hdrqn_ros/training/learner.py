@@ -30,6 +30,22 @@ def build_agent(cfg: TrainConfig) -> Agent:
     return Agent(cfg, probe.num_actions, probe.num_subgoals)
 
 
+def load_trained_agent(path: str | Path, device: str = "cpu") -> tuple[TrainConfig, Agent]:
+    """The training config and the agent of checkpoint ``path``, on ``device``; raises
+    :class:`CheckpointError` for a checkpoint that is unreadable or does not fit its config."""
+    payload = load_checkpoint(path)
+    try:
+        cfg = TrainConfig.model_validate({**payload["config"], "device": device})
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(f"{path} holds no valid training config: {str(exc).splitlines()[0]}") from None
+    agent = build_agent(cfg)
+    try:
+        agent.load_state_dict(payload["agent"])
+    except (KeyError, RuntimeError) as exc:
+        raise CheckpointError(f"{path} does not fit its {cfg.algo} agent: {str(exc).splitlines()[0]}") from None
+    return cfg, agent
+
+
 def play(agent: Agent, cfg: TrainConfig, episodes: int, seed: int, epsilon: float = 0.0,
          meta_epsilon: float | None = None, sink=None, num_envs: int | None = None) -> list[EpisodeStats]:
     """Play ``episodes`` episodes on ``num_envs`` parallel environments of a fresh batch
@@ -209,4 +225,4 @@ class Learner:
                        "wall_s": round(time.perf_counter() - start, 2), "updates": self.agent.sub.updates})
         return result
 
-__all__ = ["Learner", "evaluate", "play", "summarise", "build_agent", "EVAL_SEED_OFFSET"]
+__all__ = ["Learner", "evaluate", "play", "summarise", "build_agent", "load_trained_agent", "EVAL_SEED_OFFSET"]

@@ -35,7 +35,7 @@ class RunSpec:
 
     name: str                       # run directory name, e.g. "hdrqn-v2-nS8-s0"
     label: str                      # curve label, the same for all seeds of a setting
-    figure: str                     # which figure the curve belongs to, e.g. "fig4.7"
+    figures: tuple[str, ...]        # the figures the curve belongs to, e.g. ("fig4.7", "fig4.8")
     algo: str
     seed: int
     sets: tuple[str, ...] = ()      # --set KEY=VALUE items
@@ -57,24 +57,25 @@ class RunSpec:
 
 @dataclass(frozen=True)
 class Experiment:
-    """A thesis experiment: its config file, claim, and settings (label, figure, algo, sets, view)."""
+    """A thesis experiment: its config file, claim, and settings (label, figures, algo, sets, view);
+    a setting shared by two figures is one run in both."""
 
     name: str
     title: str
     claim: str
     config: str
-    settings: tuple[tuple[str, str, str, tuple[str, ...], str | None], ...]
+    settings: tuple[tuple[str, tuple[str, ...], str, tuple[str, ...], str | None], ...]
     figures: dict[str, str] = field(default_factory=dict)  # figure id -> title
 
     def runs(self, seeds: list[int], algos: list[str] | None = None) -> list[RunSpec]:
         """Every setting for every seed (settings of ``algos`` only, when given), seeds innermost."""
         out = []
-        for label, figure, algo, sets, view in self.settings:
+        for label, figures, algo, sets, view in self.settings:
             if algos and algo not in algos:
                 continue
             for seed in seeds:
                 name = f"{label.replace(' ', '-').replace('=', '')}-s{seed}"
-                out.append(RunSpec(name, label, figure, algo, seed, sets, view))
+                out.append(RunSpec(name, label, figures, algo, seed, sets, view))
         return out
 
 
@@ -82,10 +83,11 @@ def _exp1() -> Experiment:
     settings = []
     for algo, fig in (("hdrqn-v1", "fig4.6"), ("hdrqn-v2", "fig4.7")):
         for ns in (1, 4, 8, 12):
-            settings.append((f"{algo} nS={ns}", fig, algo, (f"sub.seq_len={ns}", "meta.seq_len=1"), None))
+            # n^S = 8, n^M = 1 is also figure 4.8's n^M = 1 curve: one run for both
+            label, figs = (f"{algo} nS=8 nM=1", (fig, "fig4.8")) if ns == 8 else (f"{algo} nS={ns}", (fig,))
+            settings.append((label, figs, algo, (f"sub.seq_len={ns}", "meta.seq_len=1"), None))
     for algo in ("hdrqn-v1", "hdrqn-v2"):
-        for nm in (1, 2):
-            settings.append((f"{algo} nM={nm}", "fig4.8", algo, ("sub.seq_len=8", f"meta.seq_len={nm}"), None))
+        settings.append((f"{algo} nM=2", ("fig4.8",), algo, ("sub.seq_len=8", "meta.seq_len=2"), None))
     return Experiment(
         "exp1", "Experiment 1: lengths of sampled sub- and meta-transitions (two goals, gridworld, 5x5 view)",
         "n^S = 8 or 12 beat short sub-transitions (n^M = 1); with n^S = 8, hDRQNv1 does worse at n^M = 2 "
@@ -96,7 +98,7 @@ def _exp1() -> Experiment:
 
 
 def _exp2() -> Experiment:
-    settings = tuple((f"{algo} view={view}", "fig4.9", algo, (), view)
+    settings = tuple((f"{algo} view={view}", ("fig4.9",), algo, (), view)
                      for algo in ("hdrqn-v1", "hdrqn-v2") for view in ("3", "5", "full"))
     return Experiment(
         "exp2", "Experiment 2: levels of observation (two goals, gridworld)",
@@ -110,7 +112,7 @@ def _exp3(domain: str, goals: int) -> Experiment:
         f"exp3-{domain}-{goals}goals",
         f"Experiment 3: hDRQN against the baselines ({goals} goals, {domain}, 5x5 view)",
         "hDRQNv2 > hDRQNv1 > hDQN > DRQN / DQN.", f"exp3_{domain}_{goals}goals.yaml",
-        tuple((algo, fig, algo, (), None) for algo in BASELINES), {fig: f"{goals} goals in {domain}"})
+        tuple((algo, (fig,), algo, (), None) for algo in BASELINES), {fig: f"{goals} goals in {domain}"})
 
 
 def _exp4() -> Experiment:
@@ -118,7 +120,7 @@ def _exp4() -> Experiment:
         "exp4-montezuma", "Experiment 4: Montezuma's Revenge, first room (phase 1: sub-controller only, then both)",
         "DQN and DRQN score 0; hDRQNv2 learns to pick up the key (figure 4.13a) and visits the subgoals on "
         "the way to it most (figure 4.13b); hDRQNv2 beats hDRQNv1 and hDQN.",
-        "exp4_montezuma.yaml", tuple((algo, "fig4.12", algo, (), None) for algo in BASELINES),
+        "exp4_montezuma.yaml", tuple((algo, ("fig4.12",), algo, (), None) for algo in BASELINES),
         {"fig4.12": "Montezuma's Revenge, first room",
          "fig4.13a": "success ratio of picking up the key (training)",
          "fig4.13b": "steps at each subgoal per episode (phase 2)"})
@@ -152,7 +154,7 @@ def episodes_logged(run_dir: Path) -> int:
 
 def manifest(exp: Experiment, runs: list[RunSpec], out: Path, episodes: int | None,
              extra_sets: tuple[str, ...] = ()) -> dict:
-    """What ``experiment.json`` holds: the experiment, its budget, and each run's label, figure and command."""
+    """What ``experiment.json`` holds: the experiment, its budget, and each run's label, figures and command."""
     config = config_dir() / exp.config
     return {"experiment": exp.name, "title": exp.title, "claim": exp.claim, "config": str(config),
            "episodes": episodes, "sets": list(extra_sets), "figures": exp.figures,

@@ -24,10 +24,13 @@ def test_every_experiment_expands_to_existing_configs_and_thesis_settings():
         assert (config_dir() / exp.config).exists(), exp.config
         runs = exp.runs([0, 1, 2])
         assert len({r.name for r in runs}) == len(runs), f"{exp.name}: run names collide"
-        assert {r.figure for r in runs} <= set(exp.figures)
+        assert {f for r in runs for f in r.figures} <= set(exp.figures)
+        assert len({(r.algo, r.sets, r.view, r.seed) for r in runs}) == len(runs), f"{exp.name}: a setting twice"
     exp1 = {r.label: r.sets for r in EXPERIMENTS["exp1"].runs([0])}
     assert exp1["hdrqn-v2 nS=12"] == ("sub.seq_len=12", "meta.seq_len=1")
     assert exp1["hdrqn-v1 nM=2"] == ("sub.seq_len=8", "meta.seq_len=2")
+    shared = {r.label: r.figures for r in EXPERIMENTS["exp1"].runs([0])}["hdrqn-v2 nS=8 nM=1"]
+    assert shared == ("fig4.7", "fig4.8") and len(exp1) == 10
     assert [r.view for r in EXPERIMENTS["exp2"].runs([0])] == ["3", "5", "full"] * 2
     assert [r.algo for r in EXPERIMENTS["exp3-fourrooms-3goals"].runs([0])] == \
         ["hdrqn-v2", "hdrqn-v1", "hdqn", "drqn", "dqn"]

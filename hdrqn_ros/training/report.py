@@ -135,7 +135,8 @@ def report_experiment(exp_dir: Path, out_dir: Path | None = None, window: int = 
     figures: dict[str, list[dict]] = defaultdict(list)
     started = [run for run in manifest["runs"] if read_csv(exp_dir / run["dir"] / "train.csv")]
     for run in started:
-        figures[run["figure"]].append(run)
+        for figure in run.get("figures") or [run["figure"]]:  # "figure": manifests before shared runs
+            figures[figure].append(run)
     groups: dict[str, list[Path]] = defaultdict(list)
     for run in started:
         groups[run["label"]].append(exp_dir / run["dir"])

@@ -12,6 +12,7 @@ the functions here aggregate them.
 from __future__ import annotations
 
 from collections.abc import Iterable
+from pathlib import Path
 
 import numpy as np
 
@@ -60,9 +61,9 @@ def option_table_markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def read_options(path, first_episode: int = 1, last_episode: int | None = None) -> list[OptionOutcome]:
+def read_options(path: str | Path, first_episode: int = 1, last_episode: int | None = None) -> list[OptionOutcome]:
     """The options of episodes ``first_episode..last_episode`` from an ``options.csv``."""
-    table = read_csv(path)
+    table = read_csv(Path(path))
     if not table:
         return []
     keep = table["episode"] >= first_episode
@@ -72,9 +73,9 @@ def read_options(path, first_episode: int = 1, last_episode: int | None = None) 
             zip(table["start"][keep], table["subgoal"][keep], table["steps"][keep], table["reached"][keep])]
 
 
-def visits_per_episode(path, first_episode: int = 1) -> dict[str, float]:
+def visits_per_episode(path: str | Path, first_episode: int = 1) -> dict[str, float]:
     """Mean steps per episode at each subgoal's place, from a ``visits.csv`` (episodes >= ``first_episode``)."""
-    table = read_csv(path)
+    table = read_csv(Path(path))
     if not table:
         return {}
     keep = table["episode"] >= first_episode

@@ -27,6 +27,10 @@ EPILOG = """examples:
 """
 
 
+MAX_GROUPS = 64
+"""Most environment/controller groups ``hdrqn up`` starts (each is 4 node processes)."""
+
+
 class UsageError(Exception):
     """Misuse of the command line: printed without a traceback, exit code 2."""
 
@@ -288,8 +292,8 @@ def cmd_up(args) -> int:
     from hdrqn_ros.training.plots import plot_runs
 
     run_dir = Path(args.out)
-    if args.groups < 1:
-        raise UsageError(f"--groups must be >= 1, got {args.groups}")
+    if not 1 <= args.groups <= MAX_GROUPS:
+        raise UsageError(f"--groups must be in 1..{MAX_GROUPS} (4 node processes each), got {args.groups}")
     if (run_dir / "checkpoints" / "last.pt").exists() and not args.resume:
         raise UsageError(f"{run_dir} already holds a run; pass --resume to continue it or choose another --out")
     cfg = _config_from_args(args)
@@ -336,14 +340,15 @@ def _graph_status(run_dir: Path) -> str:
 def cmd_eval(args) -> int:
     from collections import Counter
 
+    from hdrqn_ros.config import MAX_ENVS
     from hdrqn_ros.envs.registration import make_batch
     from hdrqn_ros.training.learner import load_trained_agent, play, summarise
     from hdrqn_ros.training.subgoals import option_table, option_table_markdown
 
     if args.episodes < 1:
         raise UsageError(f"--episodes must be >= 1, got {args.episodes}")
-    if args.num_envs is not None and args.num_envs < 1:
-        raise UsageError(f"--num-envs must be >= 1, got {args.num_envs}")
+    if args.num_envs is not None and not 1 <= args.num_envs <= MAX_ENVS:
+        raise UsageError(f"--num-envs must be in 1..{MAX_ENVS}, got {args.num_envs}")
     for flag, value in (("--epsilon", args.epsilon), ("--meta-epsilon", args.meta_epsilon)):
         if value is not None and not 0.0 <= value <= 1.0:  # also NaN
             raise UsageError(f"{flag} must be in [0, 1], got {value}")

@@ -65,6 +65,10 @@ def _meta_defaults() -> ControllerConfig:
                             epsilon=EpsilonSchedule(start=1.0, end=0.05, steps=150_000))
 
 
+MAX_ENVS = 4096
+"""Most environments one batch steps (a bigger batch is a typo, not a plan: it would fill memory)."""
+
+
 class TrainConfig(_Strict):
     """Everything one training run needs. Units: env steps unless stated."""
 
@@ -72,7 +76,7 @@ class TrainConfig(_Strict):
     env: str = "hdrqn/GridWorld-2Goals-v0"
     env_kwargs: dict[str, Any] = Field(default_factory=dict, description="environment options, e.g. {view: 3}")
     episodes: int = Field(10_000, ge=1, description="training episodes")
-    num_envs: int = Field(16, ge=1, description="environments stepped together")
+    num_envs: int = Field(16, ge=1, le=MAX_ENVS, description="environments stepped together")
     seed: int = 0
     device: str = "cpu"
     update_every: int = Field(5, ge=1, description="env steps per update of each controller")
@@ -81,7 +85,7 @@ class TrainConfig(_Strict):
     meta_state: Literal["c", "h"] = Field("c", description="hDRQNv2 meta input: sub LSTM cell (c) or hidden (h) state")
     smdp_discount: bool = Field(False, description="meta target uses gamma**k for a k-step option (eq. 3.5) instead of gamma")
     eval_every: int = Field(500, ge=0, description="episodes between greedy evaluations (0: never)")
-    eval_episodes: int = Field(100, ge=1)
+    eval_episodes: int = Field(100, ge=1, le=100_000)
     checkpoint_every: int = Field(1000, ge=1, description="episodes between checkpoints")
     torch_threads: int = Field(1, ge=1, description="torch intra-op threads; 1 is fastest for these small networks on a CPU")
     parallel_updates: bool = Field(True, description="run the meta and sub updates in two threads at once (they share nothing)")

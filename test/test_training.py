@@ -237,3 +237,17 @@ def test_meta_never_picks_the_subgoal_it_stands_on():
             picked_own_place += int(((prev_place >= 0) & (nxt == prev_place)).sum())
             assert meta.fields["next_invalid"].dtype == np.int8
     assert decisions_at_a_place >= 3 and picked_own_place == 0
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["train", "--num-envs", "100000"], "num_envs: Input should be less than or equal to 4096"),
+    (["train", "--set", "eval_episodes=1000000"], "eval_episodes: Input should be less than or equal to 100000"),
+    (["up", "--groups", "65"], "--groups must be in 1..64"),
+    (["eval", "--checkpoint", "x.pt", "--num-envs", "5000"], "--num-envs must be in 1..4096"),
+])
+def test_oversized_batches_and_graphs_are_refused(argv, message, tmp_path, capsys):
+    """A typo like 100000 environments is a clear error, not a machine filling its memory."""
+    out = ["--out", str(tmp_path / "run")] if argv[0] != "eval" else []
+    assert main([*argv, *out]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "run" / "checkpoints").exists()

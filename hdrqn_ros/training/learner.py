@@ -24,6 +24,10 @@ EVAL_SEED_OFFSET = 1_000_003
 """Evaluation environments use ``seed + EVAL_SEED_OFFSET``: the same held-out episodes
 at every evaluation, never the training ones."""
 
+MAX_EVAL_ENVS = 256
+"""Default cap on the environments an evaluation plays in parallel."""
+
+
 def build_agent(cfg: TrainConfig) -> Agent:
     """The agent for ``cfg`` with the action/subgoal counts of its domain."""
     probe = make_batch(cfg.env, 1, **cfg.env_kwargs)
@@ -49,12 +53,13 @@ def load_trained_agent(path: str | Path, device: str = "cpu") -> tuple[TrainConf
 def play(agent: Agent, cfg: TrainConfig, episodes: int, seed: int, epsilon: float = 0.0,
          meta_epsilon: float | None = None, sink=None, num_envs: int | None = None) -> list[EpisodeStats]:
     """Play ``episodes`` episodes on ``num_envs`` parallel environments of a fresh batch
-    (default: one per episode); each environment plays ``ceil(episodes / num_envs)``.
+    (default: one per episode, at most ``MAX_EVAL_ENVS``); each environment plays
+    ``ceil(episodes / num_envs)``.
     ``epsilon``: the sub-controller's (and a flat agent's) exploration; ``meta_epsilon``:
     the meta-controller's (default ``epsilon``; 1 picks subgoals at random, as phase 1).
     ``sink``: also hand it every step (``write(StepRecord)``), e.g. to record them.
     Returns each episode's statistics (env 0's episodes first)."""
-    n = min(num_envs or episodes, episodes)
+    n = min(num_envs or min(episodes, MAX_EVAL_ENVS), episodes)
     quota = -(-episodes // n)
     batch = make_batch(cfg.env, n, **cfg.env_kwargs)
     rollout = Rollout(batch, agent, seed=seed, meta_state=cfg.meta_state, record_subgoal_images=sink is not None)

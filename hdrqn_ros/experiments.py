@@ -172,12 +172,29 @@ def write_manifest(exp: Experiment, runs: list[RunSpec], out: Path, episodes: in
     return path
 
 
+def set_aside(run_dir: Path) -> Path | None:
+    """Move the metrics files of a run that left no checkpoint into ``run_dir/stale-<time>/``
+    (a restart writes new ones from episode 1; nothing is deleted). Returns that folder, or
+    None when there was nothing to move."""
+    found = [run_dir / name for name in RUN_METRICS if (run_dir / name).exists()]
+    if not found:
+        return None
+    folder = run_dir / time.strftime("stale-%Y%m%d-%H%M%S")
+    folder.mkdir(exist_ok=True)
+    for path in found:
+        path.rename(folder / path.name)
+    print(f"{run_dir} has no checkpoint: its earlier metrics are kept in {folder}; the run starts again",
+          file=sys.stderr)
+    return folder
+
+
 def run_experiment(exp: Experiment, runs: list[RunSpec], out: Path, episodes: int | None, jobs: int,
                    extra_sets: tuple[str, ...] = (), progress: bool = True, poll_s: float = 2.0) -> dict[str, int]:
     """Run ``runs`` as ``hdrqn train`` subprocesses, ``jobs`` at a time; logs go to ``out/NAME.log``.
 
     Finished runs are skipped, interrupted ones continue with ``--resume``; a run stopped
-    before its first checkpoint starts again (its partial metrics files are removed).
+    before its first checkpoint starts again (its partial metrics files are set aside,
+    :func:`set_aside`).
     Returns each run's exit code (0 for skipped ones). Ctrl-C or SIGTERM stops the children
     (they checkpoint first).
     """
@@ -215,8 +232,7 @@ def run_experiment(exp: Experiment, runs: list[RunSpec], out: Path, episodes: in
                 if (run_dir / "checkpoints" / "last.pt").exists():
                     argv.append("--resume")
                 else:
-                    for stale in RUN_METRICS:
-                        (run_dir / stale).unlink(missing_ok=True)
+                    set_aside(run_dir)
                 with open(out / f"{r.name}.log", "ab") as log:
                     running[r.name] = subprocess.Popen([sys.executable, "-m", "hdrqn_ros.cli", *argv],
                                                        stdout=log, stderr=subprocess.STDOUT,

@@ -125,7 +125,7 @@ def test_sigterm_stops_training_with_a_checkpoint_and_resume_continues(tmp_path)
         assert [int(r["episode"]) for r in csv.DictReader(f)] == list(range(1, saved + 3))
 
 
-def test_a_run_stopped_before_its_first_checkpoint_starts_clean(tmp_path):
+def test_a_run_stopped_before_its_first_checkpoint_starts_clean_and_keeps_its_old_metrics(tmp_path):
     out = tmp_path / "exp"
     stale = out / "dqn-s0"
     stale.mkdir(parents=True)
@@ -136,3 +136,6 @@ def test_a_run_stopped_before_its_first_checkpoint_starts_clean(tmp_path):
     with open(stale / "train.csv") as f:
         rows = list(csv.DictReader(f))
     assert [int(r["episode"]) for r in rows] == [1, 2] and "reward" in rows[0]
+    (kept,) = stale.glob("stale-*/train.csv")  # the earlier rows are set aside, not lost
+    assert kept.read_text() == "episode,env_steps\n1,50\n2,100\n"
+    assert "has no checkpoint: its earlier metrics are kept in" in run.stderr

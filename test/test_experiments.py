@@ -7,6 +7,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 import torch
 
@@ -139,3 +140,10 @@ def test_a_run_stopped_before_its_first_checkpoint_starts_clean_and_keeps_its_ol
     (kept,) = stale.glob("stale-*/train.csv")  # the earlier rows are set aside, not lost
     assert kept.read_text() == "episode,env_steps\n1,50\n2,100\n"
     assert "has no checkpoint: its earlier metrics are kept in" in run.stderr
+
+
+def test_wall_clock_of_a_resumed_run_adds_its_parts():
+    from hdrqn_ros.training.report import training_seconds
+
+    assert training_seconds(np.array([1.0, 5.0, 9.0])) == 9.0
+    assert training_seconds(np.array([1.0, 5.0, 9.0, 0.5, 3.0, 2.0, 4.0])) == 9.0 + 3.0 + 4.0

@@ -135,3 +135,4 @@ def test_eval_reports_subgoals_with_random_subgoals(tmp_path, capsys):
     assert "| 2 cyan | blue, green |" in err
     assert main(["eval", "--checkpoint", ckpt, "--meta-epsilon", "nan"]) == 2
     assert "--meta-epsilon must be in [0, 1]" in capsys.readouterr().err
+

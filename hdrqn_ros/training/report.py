@@ -27,6 +27,13 @@ def load_manifest(exp_dir: Path) -> dict:
         raise ValueError(f"{path} is not valid JSON: {exc}") from None
 
 
+def training_seconds(wall_s: np.ndarray) -> float:
+    """Wall-clock of a run from its ``train.csv`` ``wall_s`` column: each resumed part
+    counts from 0 again, so the parts' last values add up."""
+    ends = np.flatnonzero(np.diff(wall_s) < 0)
+    return float(wall_s[ends].sum() + wall_s[-1])
+
+
 def _run_row(run_dir: Path) -> dict | None:
     """The figures of one finished (or partly finished) run; None without any training row."""
     train, ev = read_csv(run_dir / "train.csv"), read_csv(run_dir / "eval.csv")
@@ -36,7 +43,7 @@ def _run_row(run_dir: Path) -> dict | None:
     summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
     final = (summary.get("final_eval") or {}) if summary else {}
     row = {"episodes": int(train["episode"][-1]), "env_steps": int(train["env_steps"][-1]),
-           "wall_min": float(train["wall_s"][-1]) / 60, "finished": bool(summary),
+           "wall_min": training_seconds(train["wall_s"]) / 60, "finished": bool(summary),
            "train_success_last500": float(train["success"][-500:].mean())}
     if ev:
         row["final_success"] = float(final.get("success", ev["success"][-1]))

@@ -107,12 +107,9 @@ def main():
     p.add_argument("--out-gif", default=str(IMG / "episode_montezuma.gif"))
     args = p.parse_args()
     torch.set_num_threads(1)
-    payload = load_checkpoint(args.checkpoint)
-    cfg = TrainConfig.model_validate({**payload["config"], "device": "cpu"})
+    cfg, agent = load_trained_agent(args.checkpoint)
     if not cfg.env.startswith("hdrqn/Montezuma"):
         sys.exit(f"{args.checkpoint} was trained on {cfg.env}, not Montezuma's Revenge")
-    agent = build_agent(cfg)
-    agent.load_state_dict(payload["agent"])
     if agent.meta is None:
         sys.exit(f"{cfg.algo} is a flat agent: it picks no subgoals to draw")
     best = None

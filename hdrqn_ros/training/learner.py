@@ -28,9 +28,10 @@ MAX_EVAL_ENVS = 256
 """Default cap on the environments an evaluation plays in parallel."""
 
 
-def build_agent(cfg: TrainConfig) -> Agent:
-    """The agent for ``cfg`` with the action/subgoal counts of its domain."""
-    probe = make_batch(cfg.env, 1, **cfg.env_kwargs)
+def build_agent(cfg: TrainConfig, probe=None) -> Agent:
+    """The agent for ``cfg`` with the action/subgoal counts of its domain (read from
+    ``probe``, a batch of ``cfg.env``, when the caller has one)."""
+    probe = probe if probe is not None else make_batch(cfg.env, 1, **cfg.env_kwargs)
     return Agent(cfg, probe.num_actions, probe.num_subgoals)
 
 
@@ -106,7 +107,7 @@ class Learner:
         torch.manual_seed(cfg.seed)
         self.rng = np.random.default_rng(cfg.seed)
         probe = make_batch(cfg.env, 1, **cfg.env_kwargs)
-        self.agent = Agent(cfg, probe.num_actions, probe.num_subgoals)
+        self.agent = build_agent(cfg, probe)
         self.subgoal_names, self.subgoal_neighbours = probe.subgoal_names, probe.subgoal_neighbours
         self.episodes = 0
         self.env_steps = 0

@@ -15,6 +15,7 @@ import numpy as np
 from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.episodes import EpisodeRecorder, EpisodeStats
+from hdrqn_ros.training.interrupts import stop_between_steps
 from hdrqn_ros.training.learner import EVAL_SEED_OFFSET, Learner, build_agent, evaluate, play
 from hdrqn_ros.training.rollout import Rollout, StepRecord
 from hdrqn_ros.training.subgoals import option_table, option_table_markdown, read_options
@@ -91,29 +92,31 @@ class Trainer(Learner):
         phase1_pending = (cfg.sub_only_episodes > 0 and self.agent.meta is not None
                           and not (self.run_dir / "phase1.json").exists())
         try:
-            while self.episodes < cfg.episodes:
-                for i, (stats, eps_sub, eps_meta) in enumerate(finished := self.step()):
-                    recent.append(stats)
-                    self.log_episode(stats, eps_sub, eps_meta, time.perf_counter() - start,
-                                     episode=self.episodes - len(finished) + i + 1)
-                if bar is not None and finished:
-                    bar.update(len(finished))
-                if next_eval and self.episodes >= next_eval:
-                    self._evaluate(start)
-                    next_eval = self._next_multiple(cfg.eval_every)
-                if self.episodes >= next_ckpt:
-                    self.save()
-                    next_ckpt = self._next_multiple(cfg.checkpoint_every)
-                if phase1_pending and self.episodes >= cfg.sub_only_episodes:
-                    self.phase1_report()
-                    phase1_pending = False
-                if bar is not None and finished:
-                    rate = (self.env_steps - start_steps) / max(time.perf_counter() - start, 1e-9)
-                    post = {"steps/s": f"{rate:.0f}", "succ": f"{np.mean([r.success for r in recent]):.2f}",
-                            "eps": f"{finished[-1][1]:.2f}/{finished[-1][2]:.2f}"}
-                    if self.last_eval:
-                        post["eval"] = f"{self.last_eval['success']:.2f}"
-                    bar.set_postfix(post, refresh=False)
+            with stop_between_steps() as check_stop:
+                while self.episodes < cfg.episodes:
+                    for i, (stats, eps_sub, eps_meta) in enumerate(finished := self.step()):
+                        recent.append(stats)
+                        self.log_episode(stats, eps_sub, eps_meta, time.perf_counter() - start,
+                                         episode=self.episodes - len(finished) + i + 1)
+                    if bar is not None and finished:
+                        bar.update(len(finished))
+                    if next_eval and self.episodes >= next_eval:
+                        self._evaluate(start)
+                        next_eval = self._next_multiple(cfg.eval_every)
+                    if self.episodes >= next_ckpt:
+                        self.save()
+                        next_ckpt = self._next_multiple(cfg.checkpoint_every)
+                    if phase1_pending and self.episodes >= cfg.sub_only_episodes:
+                        self.phase1_report()
+                        phase1_pending = False
+                    if bar is not None and finished:
+                        rate = (self.env_steps - start_steps) / max(time.perf_counter() - start, 1e-9)
+                        post = {"steps/s": f"{rate:.0f}", "succ": f"{np.mean([r.success for r in recent]):.2f}",
+                                "eps": f"{finished[-1][1]:.2f}/{finished[-1][2]:.2f}"}
+                        if self.last_eval:
+                            post["eval"] = f"{self.last_eval['success']:.2f}"
+                        bar.set_postfix(post, refresh=False)
+                    check_stop()  # Ctrl-C / SIGTERM land here, between steps
         except KeyboardInterrupt:
             self.save()  # keep what was trained; --resume continues from here
             raise

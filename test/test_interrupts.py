@@ -10,6 +10,7 @@ from hdrqn_ros.training.interrupts import stop_between_steps
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
 def test_a_stop_signal_raises_only_at_the_step_boundary(signum):
     steps_done = 0
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     with pytest.raises(KeyboardInterrupt):
         with stop_between_steps() as check:
             for _ in range(5):
@@ -17,7 +18,7 @@ def test_a_stop_signal_raises_only_at_the_step_boundary(signum):
                 steps_done += 1  # the rest of the step still runs
                 check()
     assert steps_done == 1
-    assert signal.getsignal(signal.SIGTERM) is not None  # the previous handlers are back
+    assert {s: signal.getsignal(s) for s in before} == before  # the previous handlers are back
 
 
 def test_a_second_signal_stops_at_once():

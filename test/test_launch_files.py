@@ -132,10 +132,11 @@ def test_launch_constants_match_the_code():
 
 # -- with ROS 2 (skipped where launch / launch_ros are not installed) --------------------------------
 def _ros_launch():
-    pytest.importorskip("launch_ros")
-    launch = pytest.importorskip("launch")
+    reason = "ROS 2 Jazzy's launch and launch_ros are not installed here (they come with ROS, not pip)"
+    pytest.importorskip("launch_ros", reason=reason)
+    launch = pytest.importorskip("launch", reason=reason)
     if not hasattr(launch, "LaunchService"):  # the repository's launch/ folder seen as a namespace package
-        pytest.skip("the ROS 2 launch package is not installed")
+        pytest.skip(reason)
     return launch
 
 

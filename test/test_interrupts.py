@@ -29,3 +29,37 @@ def test_a_second_signal_stops_at_once():
             os.kill(os.getpid(), signal.SIGTERM)
             reached.append("after the second signal")
     assert not reached
+
+
+def test_sigterm_during_an_offline_update_stops_after_it_with_a_checkpoint(tmp_path):
+    """The offline trainer finishes the update a SIGTERM lands in, then saves and stops
+    (under `hdrqn train`'s own SIGTERM handler, which raises KeyboardInterrupt)."""
+    from pathlib import Path
+
+    from hdrqn_ros.cli import _interrupt
+
+    from hdrqn_ros.config import build_config
+    from hdrqn_ros.recording.transitions import bag_config, read_episodes
+    from hdrqn_ros.training.checkpoint import load_checkpoint
+    from hdrqn_ros.training.offline import OfflineTrainer
+
+    sample = Path(__file__).resolve().parents[1] / "bags" / "hdrqn-v2_gridworld-2goals"
+    cfg = build_config([], base=bag_config(sample))
+    trainer = OfflineTrainer(cfg, tmp_path / "offline", progress=False, tensorboard=False)
+    trainer.fill(read_episodes([sample], cfg, trainer.agent.num_subgoals))
+    update = trainer._update
+
+    def update_hit_by_sigterm_on_the_third(offline):
+        if trainer.agent.sub.updates == 2:
+            os.kill(os.getpid(), signal.SIGTERM)  # lands before this update's work
+        update(offline=offline)
+
+    trainer._update = update_hit_by_sigterm_on_the_third
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            trainer.run(updates=10, evaluations=0)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert trainer.agent.sub.updates == 3
+    assert load_checkpoint(tmp_path / "offline" / "checkpoints" / "last.pt")["agent"]["sub"]["updates"] == 3

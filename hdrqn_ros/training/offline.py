@@ -7,6 +7,7 @@ import json
 import time
 from typing import Iterable
 
+from hdrqn_ros.training.interrupts import stop_between_steps
 from hdrqn_ros.training.learner import EVAL_SEED_OFFSET, Learner, evaluate
 
 
@@ -45,14 +46,16 @@ class OfflineTrainer(Learner):
             bar = tqdm(total=updates, unit="upd", dynamic_ncols=True, desc=f"offline {self.cfg.algo}")
         final = before
         try:
-            for i in range(1, updates + 1):
-                self._update(offline=True)
-                if bar is not None:
-                    bar.update(1)
-                if i in marks:
-                    final = self._eval_row(start)
+            with stop_between_steps() as check_stop:
+                for i in range(1, updates + 1):
+                    self._update(offline=True)
                     if bar is not None:
-                        bar.set_postfix({"eval": f"{final['success']:.2f}"}, refresh=False)
+                        bar.update(1)
+                    if i in marks:
+                        final = self._eval_row(start)
+                        if bar is not None:
+                            bar.set_postfix({"eval": f"{final['success']:.2f}"}, refresh=False)
+                    check_stop()  # Ctrl-C / SIGTERM land here, between updates
         except KeyboardInterrupt:
             self.save()
             raise

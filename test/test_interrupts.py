@@ -37,7 +37,6 @@ def test_sigterm_during_an_offline_update_stops_after_it_with_a_checkpoint(tmp_p
     from pathlib import Path
 
     from hdrqn_ros.cli import _interrupt
-
     from hdrqn_ros.config import build_config
     from hdrqn_ros.recording.transitions import bag_config, read_episodes
     from hdrqn_ros.training.checkpoint import load_checkpoint

@@ -3,19 +3,16 @@ from __future__ import annotations
 
 import sys
 
+import gymnasium as gym
 import numpy as np
 import pytest
+from gymnasium.utils.env_checker import check_env
 
-pytest.importorskip("ale_py")
-
-import gymnasium as gym  # noqa: E402
-from gymnasium.utils.env_checker import check_env  # noqa: E402
-
-import hdrqn_ros  # noqa: E402,F401  (registers the ids)
-from hdrqn_ros.critic import MONTEZUMA_CRITIC  # noqa: E402
-from hdrqn_ros.envs import montezuma as mz  # noqa: E402
-from hdrqn_ros.envs.domain import NO_SUBGOAL, OBS_SHAPE  # noqa: E402
-from hdrqn_ros.envs.registration import make_batch  # noqa: E402
+import hdrqn_ros  # noqa: F401  (registers the ids)
+from hdrqn_ros.critic import MONTEZUMA_CRITIC
+from hdrqn_ros.envs import montezuma as mz
+from hdrqn_ros.envs.domain import NO_SUBGOAL, OBS_SHAPE
+from hdrqn_ros.envs.registration import make_batch
 
 ENV_ID = "hdrqn/MontezumaRevenge-v0"
 NOOP, FIRE, UP, RIGHT, LEFT, DOWN, RIGHTFIRE, LEFTFIRE = 0, 1, 2, 3, 4, 5, 11, 12

@@ -4,7 +4,9 @@ the agent and its replay, epsilon schedules, one update of each controller every
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +19,7 @@ from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from hdrqn_ros.training.episodes import EpisodeRecorder, EpisodeStats
+from hdrqn_ros.training.interrupts import stop_between_steps
 from hdrqn_ros.training.metrics import MetricsLog
 from hdrqn_ros.training.rollout import Rollout
 
@@ -160,6 +163,18 @@ class Learner:
     def save(self) -> None:
         save_checkpoint(self.checkpoint_path, config=self.cfg.model_dump(), agent_state=self.agent.state_dict(),
                         progress={"episodes": self.episodes, "env_steps": self.env_steps, "meta_begin": self.meta_begin})
+
+    @contextmanager
+    def saving_on_stop(self) -> Iterator[Callable[[], None]]:
+        """A training loop's stop: Ctrl-C / SIGTERM take effect at the yielded ``check()``
+        (the loop calls it between steps, :func:`stop_between_steps`), and the
+        ``KeyboardInterrupt`` leaves with a checkpoint saved (``--resume`` continues)."""
+        try:
+            with stop_between_steps() as check:
+                yield check
+        except KeyboardInterrupt:
+            self.save()
+            raise
 
     # -- learning --------------------------------------------------------------------------
     def prefill(self, items) -> tuple[int, int]:

@@ -7,7 +7,6 @@ import json
 import time
 from typing import Iterable
 
-from hdrqn_ros.training.interrupts import stop_between_steps
 from hdrqn_ros.training.learner import EVAL_SEED_OFFSET, Learner, evaluate
 
 
@@ -46,7 +45,7 @@ class OfflineTrainer(Learner):
             bar = tqdm(total=updates, unit="upd", dynamic_ncols=True, desc=f"offline {self.cfg.algo}")
         final = before
         try:
-            with stop_between_steps() as check_stop:
+            with self.saving_on_stop() as check_stop:
                 for i in range(1, updates + 1):
                     self._update(offline=True)
                     if bar is not None:
@@ -56,9 +55,6 @@ class OfflineTrainer(Learner):
                         if bar is not None:
                             bar.set_postfix({"eval": f"{final['success']:.2f}"}, refresh=False)
                     check_stop()  # Ctrl-C / SIGTERM land here, between updates
-        except KeyboardInterrupt:
-            self.save()
-            raise
         finally:
             if bar is not None:
                 bar.close()

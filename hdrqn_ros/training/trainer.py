@@ -15,7 +15,6 @@ import numpy as np
 from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.episodes import EpisodeRecorder, EpisodeStats
-from hdrqn_ros.training.interrupts import stop_between_steps
 from hdrqn_ros.training.learner import EVAL_SEED_OFFSET, Learner, build_agent, evaluate, play
 from hdrqn_ros.training.rollout import Rollout, StepRecord
 from hdrqn_ros.training.subgoals import option_table, option_table_markdown, read_options
@@ -92,7 +91,7 @@ class Trainer(Learner):
         phase1_pending = (cfg.sub_only_episodes > 0 and self.agent.meta is not None
                           and not (self.run_dir / "phase1.json").exists())
         try:
-            with stop_between_steps() as check_stop:
+            with self.saving_on_stop() as check_stop:
                 while self.episodes < cfg.episodes:
                     for i, (stats, eps_sub, eps_meta) in enumerate(finished := self.step()):
                         recent.append(stats)
@@ -117,9 +116,6 @@ class Trainer(Learner):
                             post["eval"] = f"{self.last_eval['success']:.2f}"
                         bar.set_postfix(post, refresh=False)
                     check_stop()  # Ctrl-C / SIGTERM land here, between steps
-        except KeyboardInterrupt:
-            self.save()  # keep what was trained; --resume continues from here
-            raise
         finally:
             if bar is not None:
                 bar.close()

@@ -4,6 +4,8 @@ from glob import glob
 from setuptools import find_packages, setup
 
 PACKAGE = "hdrqn_ros"
+ROS_WHEELS = ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-std-msgs", "ros-jazzy-sensor-msgs", "ros-jazzy-geometry-msgs",
+              "ros-jazzy-nav-msgs", "ros-jazzy-rosgraph-msgs"]
 
 setup(
     name=PACKAGE,
@@ -38,9 +40,14 @@ setup(
         "mcap>=1.1",
         "mcap-ros2-support>=0.5",
     ],
-    extras_require={"test": ["pytest>=8", "hypothesis>=6.100"]},
-    zip_safe=True,
-    tests_require=["pytest"],
+    package_data={PACKAGE: ["middleware/fastdds_loopback.xml"]},
+    extras_require={
+        "test": ["pytest>=8", "hypothesis>=6.100"],
+        # real ROS 2 Jazzy rclpy with rmw_fastrtps_cpp and the message packages the nodes use:
+        # community-built wheels for Linux x86-64, CPython 3.10-3.13 (docs/security.md)
+        "ros": ROS_WHEELS,
+    },
+    zip_safe=False,
     entry_points={
         "console_scripts": [
             "hdrqn = hdrqn_ros.cli:main",

@@ -73,10 +73,12 @@ def _add_train(sub) -> None:
 def _add_up(sub) -> None:
     from hdrqn_ros.config import ALGOS
     from hdrqn_ros.envs.registration import ENV_IDS
+    from hdrqn_ros.middleware import BACKENDS
 
-    p = sub.add_parser("up", help="train over the ROS 2 node graph: each node a separate process on Cyclone DDS",
+    p = sub.add_parser("up", help="train over the ROS 2 node graph: each node a separate process (rclpy or Cyclone DDS)",
                        description="Start the environment, critic, meta-controller, sub-controller and learner "
-                                   "nodes as OS processes (no ROS install needed), show a live status line, and "
+                                   "nodes as OS processes (real rclpy nodes where rclpy is installed, else the "
+                                   "Cyclone DDS backend; no ROS install needed), show a live status line, and "
                                    "stop them all when the learner finishes or on Ctrl-C. DDS stays on the "
                                    "loopback interface unless --interface is given. Node logs go to RUN_DIR/logs/.")
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory")
@@ -90,6 +92,9 @@ def _add_up(sub) -> None:
     p.add_argument("--groups", type=int, default=1, help="environment/controller groups feeding the learner")
     p.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)")
     p.add_argument("--interface", help="network interface for DDS (default: loopback only)")
+    p.add_argument("--middleware", choices=BACKENDS, default=None,
+                   help="node backend: rclpy (real ROS 2 nodes), cyclone (Cyclone DDS with ROS 2's wire "
+                        "conventions) or auto: rclpy where it can be imported (default: $HDRQN_MIDDLEWARE or auto)")
     p.add_argument("--no-respawn", action="store_true", help="do not restart nodes that exit unexpectedly")
     p.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
     p.add_argument("--record", metavar="BAG_DIR",
@@ -158,9 +163,9 @@ def _add_bag(sub) -> None:
     play = bag_sub.add_parser(
         "play", help="publish a bag's messages on their recorded topics, paced by their timestamps (ros2 bag play)",
         description="Runs the player node (hdrqn_ros/nodes/player.py) in this process: each message goes out on its "
-                    "recorded topic with the recorded QoS, /clock carries the bag time. DDS stays on the loopback "
-                    "interface unless --interface is given (on a sourced ROS 2 the node uses rclpy and the RMW's "
-                    "own settings). Put --topics after the bag directories.")
+                    "recorded topic with the recorded QoS, /clock carries the bag time. The node runs on rclpy "
+                    "where it can be imported, else on Cyclone DDS (--middleware); DDS stays on the loopback "
+                    "interface unless --interface is given. Put --topics after the bag directories.")
     play.add_argument("bags", nargs="+", metavar="BAG_DIR", help="bag directories, played together in timestamp order")
     play.add_argument("--rate", type=float, default=1.0, help="playback speed: bag seconds per second (default 1.0)")
     play.add_argument("--loop", action="store_true", help="start over at the end, until Ctrl-C")
@@ -170,6 +175,8 @@ def _add_bag(sub) -> None:
                       help="seconds between creating the publishers and the first message, for DDS discovery (default 1.0)")
     play.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)")
     play.add_argument("--interface", help="network interface for DDS (default: loopback only)")
+    play.add_argument("--middleware", choices=("auto", "rclpy", "cyclone"), default=None,
+                      help="node backend (default: $HDRQN_MIDDLEWARE or auto: rclpy where it can be imported)")
 
 
 def _add_envs(sub) -> None:
@@ -288,10 +295,15 @@ def cmd_up(args) -> int:
     import yaml
 
     from hdrqn_ros.graph import graph_processes, write_params
+    from hdrqn_ros.middleware import BACKEND_ENV, BackendError, chosen_backend
     from hdrqn_ros.supervisor import Supervisor
     from hdrqn_ros.training.plots import plot_runs
 
     run_dir = Path(args.out)
+    try:
+        backend = chosen_backend(args.middleware)
+    except BackendError as exc:
+        raise UsageError(str(exc)) from None
     if not 1 <= args.groups <= MAX_GROUPS:
         raise UsageError(f"--groups must be in 1..{MAX_GROUPS} (4 node processes each), got {args.groups}")
     if (run_dir / "checkpoints" / "last.pt").exists() and not args.resume:
@@ -305,13 +317,14 @@ def cmd_up(args) -> int:
         raise UsageError(f"{args.record} already exists; refusing to overwrite a recording")
     extra = {"learner": {"record": str(Path(args.record).resolve())}} if args.record else None
     params = write_params(cfg, run_dir, args.groups, config_file, interface=args.interface, extra=extra)
-    env = {}
+    env = {BACKEND_ENV: backend}
     if args.domain_id is not None:
         if not 0 <= args.domain_id <= 232:
             raise UsageError(f"--domain-id must be in 0..232, got {args.domain_id}")
         env["ROS_DOMAIN_ID"] = str(args.domain_id)
     specs = graph_processes(cfg, params, args.groups, respawn=not args.no_respawn)
-    print(f"starting {len(specs)} node processes for {cfg.algo} on {cfg.env} {cfg.env_kwargs} "
+    nodes = "rclpy (ROS 2 Jazzy, Fast DDS)" if backend == "rclpy" else "Cyclone DDS"
+    print(f"starting {len(specs)} {nodes} node processes for {cfg.algo} on {cfg.env} {cfg.env_kwargs} "
           f"({args.groups} group(s), {cfg.episodes} episodes, DDS on {args.interface or 'loopback'}) -> {run_dir}; "
           f"node logs in {run_dir / 'logs'}", file=sys.stderr)
     summary_path = run_dir / "summary.json"
@@ -440,6 +453,7 @@ def _bag_play(args) -> int:
     """``hdrqn bag play``: the player node in this process."""
     import math
 
+    from hdrqn_ros.middleware import BACKEND_ENV, BackendError, chosen_backend
     from hdrqn_ros.nodes.common import run_node
     from hdrqn_ros.nodes.player import PlayerNode
 
@@ -461,6 +475,10 @@ def _bag_play(args) -> int:
            "-p", f"clock:={str(not args.no_clock).lower()}", "-p", f"delay:={yaml_float(args.delay)}"]
     if args.interface:
         ros += ["-p", f"dds_interface:={json.dumps(args.interface)}"]
+    try:
+        os.environ[BACKEND_ENV] = chosen_backend(args.middleware)
+    except BackendError as exc:
+        raise UsageError(str(exc)) from None
 
     def progress(player) -> None:
         if player.bag_time_ns is None or player.start_ns is None:

@@ -15,6 +15,7 @@ import yaml
 
 from hdrqn_ros.agents.algorithms import ALGO_SPECS
 from hdrqn_ros.config import TrainConfig
+from hdrqn_ros.middleware import BACKEND_ENV
 from hdrqn_ros.protocol.wire import group_namespaces
 from hdrqn_ros.supervisor import ProcessSpec
 
@@ -55,8 +56,18 @@ def _command(node: str) -> list[str]:
     return [sys.executable, "-c", f"import sys; from {module} import {func} as m; sys.exit(m())"]
 
 
-def graph_processes(cfg: TrainConfig, params: Path, groups: int, respawn: bool = True) -> list[ProcessSpec]:
-    """The processes of the graph: per group its nodes (seeded ``seed + 1000 * i``), then the learner."""
+def graph_processes(cfg: TrainConfig, params: Path, groups: int, respawn: bool = True,
+                    middleware: dict[str, str] | None = None) -> list[ProcessSpec]:
+    """The processes of the graph: per group its nodes (seeded ``seed + 1000 * i``), then the learner.
+
+    ``middleware`` maps node names ("environment", ..., "learner") to the backend that node's
+    processes use (``HDRQN_MIDDLEWARE``: rclpy or cyclone), e.g. for a mixed graph; nodes not
+    named inherit the supervisor's environment."""
+    middleware = middleware or {}
+
+    def env(node: str) -> dict[str, str] | None:
+        return {BACKEND_ENV: middleware[node]} if node in middleware else None
+
     hierarchical = ALGO_SPECS[cfg.algo].hierarchical
     nodes = ["environment", "critic", "meta_controller", "sub_controller"] if hierarchical else \
         ["environment", "sub_controller"]
@@ -67,7 +78,8 @@ def graph_processes(cfg: TrainConfig, params: Path, groups: int, respawn: bool =
                                      "-p", f"seed:={cfg.seed + 1000 * i}"]
             if node == "environment" and i > 0:
                 argv += ["-p", "publish_clock:=false"]  # one sim clock: group 0's
-            specs.append(ProcessSpec(name=f"{ns.strip('/') or 'graph'}/{node}", argv=argv, respawn=respawn))
+            specs.append(ProcessSpec(name=f"{ns.strip('/') or 'graph'}/{node}", argv=argv, respawn=respawn,
+                                     env=env(node)))
     learner_argv = _command("learner") + ["--ros-args", "--params-file", str(params), "-p", "resume:=true"]
-    specs.append(ProcessSpec(name="learner", argv=learner_argv, respawn=respawn, required=True))
+    specs.append(ProcessSpec(name="learner", argv=learner_argv, respawn=respawn, required=True, env=env("learner")))
     return specs

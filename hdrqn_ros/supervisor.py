@@ -58,6 +58,7 @@ class ProcessSpec:
     #                              2, bad parameters or input: a restart would fail the same way)
     respawn_delay_s: float = 1.0
     required: bool = False       # its (non-respawned) exit stops everything
+    env: dict[str, str] | None = None  # environment variables of this process only (over the supervisor's)
 
 
 class Supervisor:
@@ -109,7 +110,7 @@ class Supervisor:
         if swap:
             signal.signal(signal.SIGINT, lambda *_: None)
         try:
-            p = subprocess.Popen(spec.argv, env=self.env, stdin=subprocess.DEVNULL, stdout=out,
+            p = subprocess.Popen(spec.argv, env={**self.env, **(spec.env or {})}, stdin=subprocess.DEVNULL, stdout=out,
                                  stderr=subprocess.STDOUT if out else None, start_new_session=True)
         finally:
             if swap:

@@ -33,28 +33,14 @@ from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
 from hdrqn_ros.middleware.messages import DecodeError, decode, message_class
-from hdrqn_ros.middleware.port import DEFAULT_QOS, Middleware, Node, ParameterError, QoS
-from hdrqn_ros.middleware.ros_args import check_parameter_type, remap_and_resolve, split_ros_args
+from hdrqn_ros.middleware.network import LOOPBACK, cyclone_config
+from hdrqn_ros.middleware.port import DEFAULT_QOS, Middleware, Node, QoS
+from hdrqn_ros.middleware.ros_args import (check_parameter_type, process_settings, remap_and_resolve,
+                                           split_ros_args)
+from hdrqn_ros.throttle import Throttle
 
-LOOPBACK = "lo"
 MAX_TAKE = 64
 """Samples taken from one reader per executor pass (the rest wait in the reader's history)."""
-DEFAULT_MAX_MESSAGE_BYTES = 64 * 2**20
-"""Received samples larger than this are dropped with a warning (weights are ~2.5 MB)."""
-
-
-def cyclone_config(interface: str = LOOPBACK, peers: tuple[str, ...] = ("127.0.0.1",)) -> str:
-    """Cyclone XML for one network interface; on loopback: unicast discovery, no multicast.
-
-    ``MaxAutoParticipantIndex`` bounds the unicast discovery ports probed (one per
-    participant on the machine: a process is one participant)."""
-    peer_xml = "".join(f'<Peer address="{p}"/>' for p in peers)
-    multicast = "false" if interface == LOOPBACK else "default"
-    return ("<CycloneDDS><Domain><General>"
-            f'<Interfaces><NetworkInterface name="{interface}"/></Interfaces>'
-            f"<AllowMulticast>{multicast}</AllowMulticast></General>"
-            "<Discovery><ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>60</MaxAutoParticipantIndex>"
-            f"<Peers>{peer_xml}</Peers></Discovery></Domain></CycloneDDS>")
 
 
 def _dds_qos(qos: QoS) -> Qos:
@@ -86,21 +72,14 @@ class _Publisher:
             raise TypeError(f"{self.topic} carries {self.cls.__ros_type__}, not {type(msg).__name__}")
         self.writer.write(msg)
 
-
-def _int_setting(name: str, value) -> int:
-    """``value`` as an int (a parameter or environment variable), or a ParameterError naming it."""
-    try:
-        if isinstance(value, (bool, float)):
-            raise TypeError
-        return int(value)
-    except (TypeError, ValueError):
-        raise ParameterError(f"{name} must be an integer, got {value!r}") from None
+    def get_subscription_count(self) -> int:
+        return len(self.writer.get_matched_subscriptions())
 
 
 class _Subscription:
     def __init__(self, node: "CycloneNode", reader: DataReader, cls: type, topic: str, callback):
         self.node, self.reader, self.cls, self.topic, self.callback = node, reader, cls, topic, callback
-        self.rejected = 0  # samples dropped as malformed or oversized
+        self.dropped = Throttle(node.logger, f"dropped a sample on {topic}")  # malformed or oversized
 
     def take(self) -> list[Any]:
         """Take up to :data:`MAX_TAKE` samples; malformed ones are logged and skipped."""
@@ -113,18 +92,13 @@ class _Subscription:
             if not info.valid_data:
                 continue
             if len(data) > limit:
-                self._reject(f"{len(data)} B exceeds the {limit} B message limit")
+                self.dropped.warn(f"{len(data)} B exceeds the {limit} B message limit")
                 continue
             try:
                 out.append(decode(self.cls, data))
             except DecodeError as exc:  # a peer sent bytes that do not decode as this type
-                self._reject(str(exc))
+                self.dropped.warn(exc)
         return out
-
-    def _reject(self, why: str) -> None:
-        self.rejected += 1
-        if self.rejected <= 10 or self.rejected % 1000 == 0:
-            self.node.logger.warning("dropped a sample on %s: %s (%d dropped so far)", self.topic, why, self.rejected)
 
 
 class _Timer:
@@ -211,16 +185,14 @@ class CycloneMiddleware(Middleware):
     def __init__(self, argv: list[str] | None = None, domain_id: int | None = None, interface: str | None = None):
         self.user_args, self.ros_args = split_ros_args(list(argv or []))
         _setup_logging(self.ros_args.log_level)
-        global_params = self.ros_args.parameters_for("", "/")
+        settings = process_settings(self.ros_args)
         if domain_id is None:
-            domain_id = _int_setting("ros_domain_id (or $ROS_DOMAIN_ID)",
-                                     global_params.get("ros_domain_id", os.environ.get("ROS_DOMAIN_ID", "0") or 0))
+            domain_id = settings.domain_id
         if not 0 <= domain_id <= 232:
             raise ValueError(f"ROS_DOMAIN_ID must be in 0..232, got {domain_id}")
-        interface = interface or global_params.get("dds_interface") or os.environ.get("HDRQN_DDS_INTERFACE")
+        interface = interface or settings.interface
         self.domain_id = domain_id
-        self.max_message_bytes = _int_setting("max_message_bytes",
-                                              global_params.get("max_message_bytes", DEFAULT_MAX_MESSAGE_BYTES))
+        self.max_message_bytes = settings.max_message_bytes
         if interface is None and os.environ.get("CYCLONEDDS_URI"):
             self.interface = "CYCLONEDDS_URI"
             self._domain = Domain(domain_id, os.environ["CYCLONEDDS_URI"])
@@ -276,7 +248,10 @@ class CycloneMiddleware(Middleware):
         node = CycloneNode(self, name, namespace.rstrip("/") or "/")
         with self._lock:
             self._nodes.append(node)
+            first = len(self._nodes) == 1
         self.announce()
+        if first:
+            node.logger.info("middleware cyclone: Cyclone DDS on %s, domain %d", self.interface, self.domain_id)
         return node
 
     def remove_node(self, node: CycloneNode) -> None:

@@ -1,9 +1,10 @@
 """The middleware port: the little that nodes need from ROS 2.
 
 Two backends implement it with the same behaviour, so one node code base runs on both:
-:mod:`hdrqn_ros.middleware.rclpy_backend` (a ROS 2 Jazzy system, ``import rclpy`` works)
-and :mod:`hdrqn_ros.middleware.cyclone` (PyPI ``cyclonedds``, speaking ROS 2's wire
-conventions, used everywhere else and by the tests). Nodes never import either backend;
+:mod:`hdrqn_ros.middleware.rclpy_backend` (real ROS 2 Jazzy nodes: the default wherever
+``import rclpy`` works, from the PyPI wheels or a sourced ROS 2) and
+:mod:`hdrqn_ros.middleware.cyclone` (PyPI ``cyclonedds``, speaking ROS 2's wire
+conventions, for platforms without rclpy and for mixed graphs). Nodes never import either backend;
 they get a :class:`Node` from :func:`hdrqn_ros.middleware.open_middleware`.
 
 Message types are named as in ROS 2 (``"sensor_msgs/msg/Image"``); :meth:`Node.msg`
@@ -37,6 +38,9 @@ LATCHED_QOS = QoS(depth=1, transient_local=True)
 
 class Publisher(Protocol):
     def publish(self, msg: Any) -> None: ...
+
+    def get_subscription_count(self) -> int:
+        """Subscriptions matched to this publisher (as rclpy's ``Publisher`` answers)."""
 
 
 class Node(ABC):
@@ -125,6 +129,10 @@ class Middleware(ABC):
 
     def __exit__(self, *exc) -> None:
         self.shutdown()
+
+
+class BackendError(ValueError):
+    """A middleware backend that was asked for but cannot be used here (names what to install)."""
 
 
 class ParameterError(ValueError):

@@ -1,4 +1,10 @@
-"""The rclpy backend of the middleware port, for a ROS 2 Jazzy system (``import rclpy`` works).
+"""The rclpy backend of the middleware port: real ROS 2 Jazzy nodes.
+
+rclpy comes from a sourced ROS 2 Jazzy (``source /opt/ros/jazzy/setup.bash``, which wins
+when sourced) or from the PyPI wheels of Jazzy (``pip install hdrqn_ros[ros]``, RMW
+``rmw_fastrtps_cpp``). Before ``rclpy.init`` the RMW gets our loopback-only network
+defaults (:func:`hdrqn_ros.middleware.network.apply_rmw_network_defaults`) unless the user
+configured an interface or a DDS profile of their own.
 
 This module imports without rclpy so that :func:`rclpy_available` can be asked anywhere;
 constructing :class:`RclpyMiddleware` without rclpy raises :class:`ImportError`.
@@ -8,6 +14,7 @@ from __future__ import annotations
 import array
 import importlib
 import logging
+import sys
 import time
 from functools import lru_cache
 from typing import Any, Callable
@@ -21,6 +28,7 @@ try:
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from rclpy.serialization import deserialize_message, serialize_message
+    from rclpy.signals import SignalHandlerOptions
 except ImportError as exc:  # no sourced ROS 2 (or a broken one): the Cyclone backend is used
     _RCLPY_IMPORT_ERROR: ImportError | None = exc
 else:
@@ -28,19 +36,40 @@ else:
 
 import numpy as np
 
-from hdrqn_ros.middleware.port import (DEFAULT_QOS, Middleware, Node, ParameterError, Publisher, QoS,
-                                       RosArgsError)
+from hdrqn_ros.middleware.network import apply_rmw_network_defaults
+from hdrqn_ros.middleware.port import DEFAULT_QOS, Middleware, Node, ParameterError, Publisher, QoS, RosArgsError
+from hdrqn_ros.middleware.ros_args import ProcessSettings, process_settings, split_ros_args
+from hdrqn_ros.throttle import Throttle
 
 _SPIN_STEP_S = 0.05
 _TYPECODES = {"u1": "B", "i1": "b", "u2": "H", "i2": "h", "u4": "I", "i4": "i", "u8": "Q", "i8": "q", "f4": "f",
               "f8": "d"}
-_RCUTILS_METHODS = ((logging.CRITICAL, "fatal"), (logging.ERROR, "error"), (logging.WARNING, "warning"),
-                    (logging.INFO, "info"), (logging.NOTSET, "debug"))
+
+
+RCLPY_INSTALL_HINT = ("pip install 'hdrqn_ros[ros]' (the PyPI wheels of ROS 2 Jazzy: Linux x86-64, CPython "
+                      "3.10-3.13) or source /opt/ros/jazzy/setup.bash")
 
 
 def rclpy_available() -> bool:
-    """Whether ``import rclpy`` worked (a sourced ROS 2 installation)."""
+    """Whether ``import rclpy`` worked (the Jazzy wheels, or a sourced ROS 2)."""
     return _RCLPY_IMPORT_ERROR is None
+
+
+def rclpy_version() -> str:
+    """The installed rclpy's version ("7.1.6" for the Jazzy wheels), or "" when unknown."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    for dist in ("ros-rclpy", "rclpy"):
+        try:
+            return version(dist)
+        except PackageNotFoundError:
+            continue
+    return ""
+
+
+def rclpy_import_error() -> str:
+    """Why ``import rclpy`` failed ("" when it worked)."""
+    return "" if _RCLPY_IMPORT_ERROR is None else str(_RCLPY_IMPORT_ERROR)
 
 
 @lru_cache(maxsize=None)
@@ -75,9 +104,19 @@ class _RcutilsHandler(logging.Handler):
         self._ros_logger = ros_logger
 
     def emit(self, record: logging.LogRecord) -> None:
+        """One call site per severity: rclpy refuses a severity change at one call site."""
         try:
-            method = next(m for level, m in _RCUTILS_METHODS if record.levelno >= level)
-            getattr(self._ros_logger, method)(self.format(record))  # format: printf args, tracebacks
+            text, level, ros = self.format(record), record.levelno, self._ros_logger  # format: args, tracebacks
+            if level >= logging.CRITICAL:
+                ros.fatal(text)
+            elif level >= logging.ERROR:
+                ros.error(text)
+            elif level >= logging.WARNING:
+                ros.warning(text)
+            elif level >= logging.INFO:
+                ros.info(text)
+            else:
+                ros.debug(text)
         except Exception:
             self.handleError(record)
 
@@ -85,8 +124,9 @@ class _RcutilsHandler(logging.Handler):
 class RclpyNode(Node):
     """A :class:`Node` backed by an ``rclpy.node.Node``."""
 
-    def __init__(self, node: rclpy.node.Node) -> None:
+    def __init__(self, node: rclpy.node.Node, max_message_bytes: int) -> None:
         self._node = node
+        self._max_message_bytes = max_message_bytes
         self.name = node.get_name()  # after any __node / __ns remapping
         self.namespace = node.get_namespace()
         # A Logger outside logging's registry: nodes of equal names do not share handlers, and
@@ -117,7 +157,25 @@ class RclpyNode(Node):
 
     def create_subscription(self, type_name: str, topic: str, callback: Callable[[Any], None],
                             qos: QoS = DEFAULT_QOS) -> Any:
-        return self._node.create_subscription(self.msg(type_name), topic, callback, _qos_profile(qos))
+        """Takes the serialized sample, so that an oversized one (over ``max_message_bytes``) is
+        dropped before decoding and one that does not decode is dropped too, each with a
+        throttled warning, as on the Cyclone backend."""
+        cls, limit = self.msg(type_name), self._max_message_bytes
+        name = self.resolve_topic(topic)
+        dropped = Throttle(self._logger, f"dropped a sample on {name}")
+
+        def on_sample(data: bytes) -> None:
+            if len(data) > limit:
+                dropped.warn(f"{len(data)} B exceeds the {limit} B message limit")
+                return
+            try:
+                msg = deserialize_message(data, cls)
+            except Exception as exc:  # rmw's deserializer: bytes that are not this type
+                dropped.warn(f"does not decode as {type_name}: {exc}")
+                return
+            callback(msg)
+
+        return self._node.create_subscription(cls, topic, on_sample, _qos_profile(qos), raw=True)
 
     def create_timer(self, period_s: float, callback: Callable[[], None]) -> Any:
         """A timer on the steady clock: wall time as the port says, even with ``use_sim_time``."""
@@ -166,13 +224,18 @@ class RclpyMiddleware(Middleware):
 
     def __init__(self, argv: list[str] | None) -> None:
         """``argv`` is the whole process argv (program name first, ``--ros-args ...`` included);
-        ``None`` lets rclpy read ``sys.argv``."""
+        ``None`` lets rclpy read ``sys.argv``. rclpy installs no signal handlers: the
+        process's owner (:func:`hdrqn_ros.nodes.common.run_node`) stops the spin, so nodes
+        can still publish on the way out (a zero ``cmd_vel``)."""
         if _RCLPY_IMPORT_ERROR is not None:
-            raise ImportError("the rclpy middleware backend needs ROS 2 Jazzy's rclpy (source "
-                              f"/opt/ros/jazzy/setup.bash): {_RCLPY_IMPORT_ERROR}") from _RCLPY_IMPORT_ERROR
+            raise ImportError(f"the rclpy middleware backend needs ROS 2 Jazzy's rclpy: {RCLPY_INSTALL_HINT} "
+                              f"({_RCLPY_IMPORT_ERROR})") from _RCLPY_IMPORT_ERROR
+        self.settings: ProcessSettings = process_settings(split_ros_args(list(argv or sys.argv))[1])
+        self.network = apply_rmw_network_defaults(self.settings.interface)
         self._context = Context()
         try:
-            rclpy.init(args=argv, context=self._context)
+            rclpy.init(args=argv, context=self._context, domain_id=self.settings.domain_id,
+                       signal_handler_options=SignalHandlerOptions.NO)
         except RuntimeError as exc:  # rcl's RCLError / UnknownROSArgsError
             raise RosArgsError(f"rclpy.init rejected the ROS arguments: {exc}") from None
         self._executor = SingleThreadedExecutor(context=self._context)
@@ -180,9 +243,13 @@ class RclpyMiddleware(Middleware):
         self._closed = False
 
     def create_node(self, name: str, namespace: str = "") -> RclpyNode:
-        node = RclpyNode(rclpy.node.Node(name, namespace=namespace, context=self._context))
+        node = RclpyNode(rclpy.node.Node(name, namespace=namespace, context=self._context),
+                         self.settings.max_message_bytes)
         self._executor.add_node(node._node)
         self._nodes.append(node)
+        if len(self._nodes) == 1:
+            node.logger.info("middleware rclpy %s: %s, domain %d", rclpy_version(), self.network,
+                             self.settings.domain_id)
         return node
 
     def spin(self, until: Callable[[], bool] | None = None, timeout_s: float | None = None) -> None:

@@ -195,3 +195,47 @@ def check_parameter_type(node: str, name: str, default: Any, value: Any) -> Any:
         raise ParameterError(f"node {node}: parameter {name!r} must be {type(default).__name__} "
                              f"(default {default!r}), got {value!r}")
     return value
+
+
+DEFAULT_MAX_MESSAGE_BYTES = 64 * 2**20
+"""Received samples larger than this are dropped with a warning (weights are ~2.5 MB)."""
+
+
+@dataclass(frozen=True)
+class ProcessSettings:
+    """What a process's middleware needs before its first node: from the ``/**`` parameters
+    (``ros_domain_id``, ``dds_interface``, ``max_message_bytes``) or the environment
+    (``ROS_DOMAIN_ID``, ``HDRQN_DDS_INTERFACE``). ``interface`` None: loopback only."""
+
+    domain_id: int
+    interface: str | None
+    max_message_bytes: int
+
+
+def process_settings(ros: RosArgs, environ: dict | None = None) -> ProcessSettings:
+    """The :class:`ProcessSettings` of ``ros``; a :class:`ParameterError` naming a bad one."""
+    import os
+
+    environ = os.environ if environ is None else environ
+    params = ros.parameters_for("", "/")
+    domain_id = _int_setting("ros_domain_id (or $ROS_DOMAIN_ID)",
+                             params.get("ros_domain_id", environ.get("ROS_DOMAIN_ID", "0") or 0))
+    if not 0 <= domain_id <= 232:
+        raise ParameterError(f"ROS_DOMAIN_ID must be in 0..232, got {domain_id}")
+    interface = params.get("dds_interface") or environ.get("HDRQN_DDS_INTERFACE") or None
+    if interface is not None and not isinstance(interface, str):
+        raise ParameterError(f"dds_interface must be an interface name, got {interface!r}")
+    max_bytes = _int_setting("max_message_bytes", params.get("max_message_bytes", DEFAULT_MAX_MESSAGE_BYTES))
+    if max_bytes <= 0:
+        raise ParameterError(f"max_message_bytes must be > 0, got {max_bytes}")
+    return ProcessSettings(domain_id, interface, max_bytes)
+
+
+def _int_setting(name: str, value) -> int:
+    """``value`` as an int (a parameter or environment variable), or a ParameterError naming it."""
+    try:
+        if isinstance(value, (bool, float)):
+            raise TypeError
+        return int(value)
+    except (TypeError, ValueError):
+        raise ParameterError(f"{name} must be an integer, got {value!r}") from None

@@ -13,11 +13,13 @@ from hdrqn_ros.agents.algorithms import ALGO_SPECS, make_network
 from hdrqn_ros.agents.weights import WeightsError, load_weights
 from hdrqn_ros.config import ConfigError
 from hdrqn_ros.envs.registration import GRID_IDS, MONTEZUMA_IDS, make_batch
-from hdrqn_ros.middleware import LATCHED_QOS, Middleware, Node, ParameterError, RosArgsError, open_middleware
+from hdrqn_ros.middleware import (LATCHED_QOS, BackendError, Middleware, Node, ParameterError, RosArgsError,
+                                  open_middleware)
 from hdrqn_ros.protocol import wire as P
 from hdrqn_ros.nodes.nav import NavConfigError
 from hdrqn_ros.recording.bag import BagError
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint
+from hdrqn_ros.throttle import Throttle
 from hdrqn_ros.training.rollout import epsilon_greedy
 
 ENV_DEFAULTS = {"algo": "hdrqn-v2", "env": "hdrqn/GridWorld-2Goals-v0", "view": "5", "seed": 0}
@@ -70,6 +72,7 @@ class ActingNetwork:
         self.weights_version = -1
         if params["checkpoint"]:
             self._load_checkpoint(params["checkpoint"])
+        self.rejected_weights = Throttle(node.logger, f"rejected {role} weights on {P.WEIGHTS[role]}")
         node.create_subscription(P.BYTES, P.WEIGHTS[role], self._on_weights, LATCHED_QOS)
 
     def _load_checkpoint(self, path: str) -> None:
@@ -87,7 +90,7 @@ class ActingNetwork:
             version = P.read_weights_version(msg)
             load_weights(self.net, P.as_bytes(msg.data))
         except (WeightsError, ValueError) as exc:
-            self.node.logger.warning("rejected %s weights on %s: %s", self.role, P.WEIGHTS[self.role], exc)
+            self.rejected_weights.warn(exc)
             return
         if self.weights_version < 0 or version // 100 > self.weights_version // 100:
             self.node.logger.info("acting with the learner's %s weights of update %d", self.role, version)
@@ -125,8 +128,8 @@ def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None) 
         return getattr(obj, "exit_code", 0)
     except KeyboardInterrupt:
         return 130
-    except (NodeConfigError, NavConfigError, ConfigError, ParameterError, RosArgsError, CheckpointError,
-            BagError, FileNotFoundError) as exc:
+    except (NodeConfigError, NavConfigError, ConfigError, ParameterError, RosArgsError, BackendError,
+            CheckpointError, BagError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     finally:

@@ -19,6 +19,7 @@ from hdrqn_ros.envs.registration import MONTEZUMA_IDS, make_batch
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
 from hdrqn_ros.protocol import wire as P
 from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, env_kwargs, run_node
+from hdrqn_ros.throttle import Throttle
 
 PARAMETERS = {**ENV_DEFAULTS, "step_period": 0.01, "frame_id": "hdrqn_map", "action_timeout": 5.0,
               "wait_for_learner": False, "max_episodes": 0, "step_log": "", "publish_clock": True}
@@ -55,6 +56,8 @@ class EnvironmentNode:
         self.action_time = 0.0  # wall clock when pending_action arrived (step_log)
         self.finished = False
         self.step_log = open(p["step_log"], "a", buffering=1) if p["step_log"] else None
+        self.rejected_actions = Throttle(node.logger, f"rejected a message on {self._topic(P.ACTION)}")
+        self.rejected_credit = Throttle(node.logger, f"rejected a message on {self._topic(P.CREDIT)}")
         self.obs = self.batch.reset(seed=p["seed"])[0]
         self._begin_episode()
 
@@ -95,7 +98,7 @@ class EnvironmentNode:
             rec = P.read_record(msg, P.ACTION_FIELDS, np.int64)
             action = P.check_index(rec["action"], self.batch.num_actions, "action")
         except P.ProtocolError as exc:
-            self.node.logger.warning("rejected a message on %s: %s", self._topic(P.ACTION), exc)
+            self.rejected_actions.warn(exc)
             return
         if rec["key"] != self.key or self.pending_action is not None:
             return  # a stale or repeated reply (e.g. to a re-published step)
@@ -107,7 +110,7 @@ class EnvironmentNode:
         try:
             credit = P.read_record(msg, P.CREDIT_FIELDS)
         except P.ProtocolError as exc:
-            self.node.logger.warning("rejected a message on learner_credit: %s", exc)
+            self.rejected_credit.warn(exc)
             return
         self.credit = int(credit["credit_steps"])
         self._step_if_allowed()

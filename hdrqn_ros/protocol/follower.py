@@ -13,6 +13,7 @@ from collections import OrderedDict, deque
 from typing import Any, Callable
 
 from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.throttle import Throttle
 
 DEFAULT_CAPACITY = 512
 """Keys kept per input topic, steps queued, and replies remembered (each bounded)."""
@@ -69,7 +70,7 @@ class StepFollower:
         self.queue: deque[dict] = deque()
         self.replies: OrderedDict[int, list] = OrderedDict()
         self.last_key = 0
-        self.rejected = 0
+        self._rejections: dict[str, Throttle] = {}
         self._head_seen: int | None = None
         if node is not None:
             node.create_timer(5.0, self._report_stall)
@@ -106,11 +107,16 @@ class StepFollower:
         try:
             return read()
         except (P.ProtocolError, ValueError, TypeError, AttributeError) as exc:
-            self.rejected += 1
-            if self.rejected <= 10 or self.rejected % 1000 == 0:
+            if topic not in self._rejections:
                 name = self.node.resolve_topic(topic) if self.node is not None else topic
-                self.logger.warning("rejected a message on %s: %s (%d rejected so far)", name, exc, self.rejected)
+                self._rejections[topic] = Throttle(self.logger, f"rejected a message on {name}")
+            self._rejections[topic].warn(exc)
             return None
+
+    @property
+    def rejected(self) -> int:
+        """Malformed messages rejected so far, over all topics."""
+        return sum(t.count for t in self._rejections.values())
 
     # -- processing ------------------------------------------------------------------------------
     def pump(self) -> None:

@@ -1,0 +1,137 @@
+"""Safe network defaults of both DDS implementations: loopback only unless asked otherwise.
+
+* Cyclone DDS (our Cyclone backend, or ``rmw_cyclonedds_cpp`` under rclpy): the XML of
+  :func:`cyclone_config`, given to the domain (``CYCLONEDDS_URI`` for the RMW).
+* Fast DDS (``rmw_fastrtps_cpp``, the RMW of the PyPI rclpy wheels): a profile given by
+  ``FASTRTPS_DEFAULT_PROFILES_FILE`` plus ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``. Out
+  of the box Fast DDS discovers by multicast on every interface; with
+  :data:`FASTDDS_LOOPBACK_PROFILE` (UDPv4 transport white-listed to 127.0.0.1, no built-in
+  transports, unicast discovery to 127.0.0.1 on 60 participant ports) every datagram goes
+  to 127.0.0.1 (traced: ``test/test_loopback.py``), and it meets the Cyclone backend's
+  nodes. Neither setting alone does both: the range alone does not meet Cyclone, the
+  profile alone still announces to the multicast group.
+
+A user's own ``CYCLONEDDS_URI`` or Fast DDS profile always wins; a configured interface
+(``dds_interface`` / ``HDRQN_DDS_INTERFACE``) replaces loopback by that interface, with
+multicast discovery on it.
+"""
+from __future__ import annotations
+
+import fcntl
+import os
+import socket
+import struct
+import tempfile
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+from hdrqn_ros.middleware.port import ParameterError
+
+LOOPBACK = "lo"
+LOOPBACK_ADDRESS = "127.0.0.1"
+MAX_PARTICIPANTS = 60
+"""Unicast discovery ports probed on loopback (participant indices 0..59): one participant
+per process, so at most this many node processes per machine and domain."""
+FASTDDS_PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+"""Where Fast DDS 2.x (Jazzy) and 3.x read the path of a default XML profile."""
+FASTDDS_LOOPBACK_PROFILE = Path(__file__).with_name("fastdds_loopback.xml")
+
+
+def cyclone_config(interface: str = LOOPBACK, peers: tuple[str, ...] = (LOOPBACK_ADDRESS,)) -> str:
+    """Cyclone XML for one network interface; on loopback: unicast discovery, no multicast.
+
+    ``MaxAutoParticipantIndex`` bounds the unicast discovery ports probed (one per
+    participant on the machine: a process is one participant)."""
+    peer_xml = "".join(f'<Peer address="{p}"/>' for p in peers)
+    multicast = "false" if interface == LOOPBACK else "default"
+    return ("<CycloneDDS><Domain><General>"
+            f'<Interfaces><NetworkInterface name="{interface}"/></Interfaces>'
+            f"<AllowMulticast>{multicast}</AllowMulticast></General>"
+            "<Discovery><ParticipantIndex>auto</ParticipantIndex>"
+            f"<MaxAutoParticipantIndex>{MAX_PARTICIPANTS}</MaxAutoParticipantIndex>"
+            f"<Peers>{peer_xml}</Peers></Discovery></Domain></CycloneDDS>")
+
+
+def interface_address(interface: str) -> str:
+    """The IPv4 address of the network interface ``interface`` (e.g. ``eth0``); a
+    :class:`ParameterError` naming it when there is no such interface or it has no IPv4."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        try:
+            request = struct.pack("256s", interface.encode()[:15])
+            reply = fcntl.ioctl(sock.fileno(), 0x8915, request)  # SIOCGIFADDR
+        except OSError as exc:
+            raise ParameterError(f"dds_interface {interface!r}: no IPv4 address on such an interface "
+                                 f"({exc.strerror})") from None
+    return socket.inet_ntoa(reply[20:24])
+
+
+def fastdds_interface_profile(address: str) -> str:
+    """A Fast DDS profile that uses only the interface with IPv4 ``address``, discovering by
+    multicast on it (what the Cyclone backend does with ``dds_interface``)."""
+    return ('<?xml version="1.0" encoding="UTF-8"?>\n'
+            '<dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"><profiles>'
+            "<transport_descriptors><transport_descriptor><transport_id>hdrqn_udp</transport_id>"
+            f"<type>UDPv4</type><interfaceWhiteList><address>{address}</address></interfaceWhiteList>"
+            "</transport_descriptor></transport_descriptors>"
+            '<participant profile_name="hdrqn_interface" is_default_profile="true"><rtps>'
+            "<userTransports><transport_id>hdrqn_udp</transport_id></userTransports>"
+            "<useBuiltinTransports>false</useBuiltinTransports></rtps></participant>"
+            "</profiles></dds>\n")
+
+
+def _write_once(name: str, text: str) -> str:
+    """``text`` as the file ``name`` in the temporary directory (replaced atomically when it
+    differs, so processes starting side by side never read half a file); returns its path."""
+    path = Path(tempfile.gettempdir()) / name
+    if not path.exists() or path.read_text() != text:
+        handle, partial = tempfile.mkstemp(prefix=name, dir=path.parent)
+        with os.fdopen(handle, "w") as out:
+            out.write(text)
+        os.replace(partial, path)
+    return str(path)
+
+
+def check_fastdds_profile(path: str, variable: str) -> None:
+    """A :class:`ParameterError` naming ``path`` (from ``variable``) unless it is a readable XML
+    file whose root is Fast DDS's ``<dds>`` or ``<profiles>``."""
+    try:
+        root = ET.parse(path).getroot()
+    except OSError as exc:
+        raise ParameterError(f"{variable}={path}: cannot read the Fast DDS profile ({exc.strerror})") from None
+    except ET.ParseError as exc:
+        raise ParameterError(f"{variable}={path}: the Fast DDS profile is not valid XML ({exc})") from None
+    if root.tag.rpartition("}")[2] not in ("dds", "profiles"):
+        raise ParameterError(f"{variable}={path}: the Fast DDS profile's root element is <{root.tag}>, "
+                             "not <dds> or <profiles>")
+
+
+def apply_rmw_network_defaults(interface: str | None, environ: os._Environ | dict = os.environ) -> str:
+    """Before ``rclpy.init``: point the RMW at our network defaults unless the user configured
+    their own; returns a one-line description of what the RMW will use.
+
+    ``interface`` (``dds_interface``) None or ``"lo"``: loopback only. A Fast DDS profile the
+    user names is checked (it must exist and parse) and kept."""
+    rmw = environ.get("RMW_IMPLEMENTATION", "") or "rmw_fastrtps_cpp"
+    if "cyclonedds" in rmw:
+        if environ.get("CYCLONEDDS_URI") and interface is None:
+            return f"{rmw} with the user's CYCLONEDDS_URI"
+        environ["CYCLONEDDS_URI"] = cyclone_config(interface or LOOPBACK)
+        return f"{rmw} on {interface or 'loopback only'}"
+    for variable in FASTDDS_PROFILE_VARIABLES:
+        if environ.get(variable):
+            check_fastdds_profile(environ[variable], variable)
+            if interface is None:
+                return f"{rmw} with the user's profile {environ[variable]}"
+    if interface in (None, LOOPBACK):
+        profile = str(FASTDDS_LOOPBACK_PROFILE)
+        # the profile alone still sends SPDP announcements to the multicast group too (on lo);
+        # rmw_fastrtps's LOCALHOST range on top of it makes every datagram unicast to 127.0.0.1
+        environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        where = "loopback only"
+    else:
+        address = interface_address(interface)
+        profile = _write_once(f"hdrqn-fastdds-{address}.xml", fastdds_interface_profile(address))
+        where = f"{interface} ({address})"
+    for variable in FASTDDS_PROFILE_VARIABLES:
+        environ[variable] = profile
+    return f"{rmw} on {where}"

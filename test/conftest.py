@@ -1,0 +1,24 @@
+"""Fixtures shared by the multi-process tests: the middleware backend the node processes run on."""
+from __future__ import annotations
+
+import pytest
+
+from hdrqn_ros.middleware import BACKEND_ENV, open_middleware
+from hdrqn_ros.middleware.rclpy_backend import rclpy_available
+
+NO_RCLPY = pytest.mark.skipif(not rclpy_available(), reason="rclpy (the ROS 2 Jazzy wheels, extra [ros]) is not "
+                                                            "installed: scripts/install installs it on Linux x86-64")
+BACKEND_PARAMS = [pytest.param("rclpy", marks=NO_RCLPY), "cyclone"]
+
+
+@pytest.fixture(params=BACKEND_PARAMS)
+def backend(request, monkeypatch) -> str:
+    """Each test runs twice: node processes (and the test's own probe node) on real rclpy,
+    then on the Cyclone DDS backend (``HDRQN_MIDDLEWARE`` is inherited by subprocesses)."""
+    monkeypatch.setenv(BACKEND_ENV, request.param)
+    return request.param
+
+
+def probe_middleware(backend: str):
+    """The test process's own middleware, on ``backend`` (loopback defaults applied)."""
+    return open_middleware(["probe"], backend)

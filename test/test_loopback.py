@@ -1,0 +1,322 @@
+"""A node's DDS traffic stays on loopback by default, on both middleware backends.
+
+Everything runs inside a network namespace the test makes, ``hdrqn-lo-<pid>``: ``lo`` up
+and one more interface, ``hq<pid>d``, with the private address ``10.213.0.1/24`` and the
+default route through it, so a node that is *not* loopback-only sends its datagrams (SPDP
+multicast to 239.255.0.1, unicast to other addresses) out of ``hq<pid>d``. That interface
+is a ``dummy`` where the kernel has the dummy driver, else a veth pair whose two ends both
+live in the namespace. Either way the namespace has no link to the outside, so nothing a
+test runs here can reach a real network, and deleting the namespace removes it all. IPv6
+is switched off in the namespace only (the kernel's own neighbour discovery would
+otherwise put frames on the interface that no node sent).
+
+A small helper process in the namespace captures with raw ``AF_PACKET`` sockets
+(``ETH_P_ALL``) bound to ``hq<pid>d`` and to ``lo``: it counts every frame in either
+direction and records the destination address:port of each IPv4 UDP datagram, and prints
+the tally as JSON when its stdin closes (after draining what the kernel queued).
+
+* Positive (rclpy, cyclone, rclpy talker -> cyclone listener): a talker publishing a 44x44
+  ``sensor_msgs/Image`` and a listener that must receive and check N of them run with the
+  backends' defaults. The capture must see zero frames on ``hq<pid>d`` (and none dropped),
+  while it saw the nodes' UDP traffic on ``lo``.
+* Control (the check can fail): the same talker with ``-p dds_interface:=hq<pid>d``: the
+  capture must see its UDP datagrams on ``hq<pid>d`` (discovery multicast to
+  239.255.0.1:7400+250*domain), so a leak would have been caught.
+
+Skips (with the reason) where the namespace cannot be made: not root, no ``ip``, no
+``CAP_SYS_ADMIN``/``CAP_NET_ADMIN``. The rclpy cases skip where rclpy cannot be imported.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from test_graph import domain  # noqa: F401  (fixture: a DDS domain of the test's own)
+
+try:
+    import rclpy  # noqa: F401
+    HAVE_RCLPY = True
+except Exception:  # noqa: BLE001 (any import failure: missing wheels, missing shared libraries)
+    HAVE_RCLPY = False
+
+REPO = Path(__file__).resolve().parents[1]
+SUBNET = "10.213.0"
+WANT = 10
+"""Images the listener must receive: proof that traffic flowed while the capture ran."""
+TOPIC = "/hdrqn_loopback/image"
+DISCOVERY_GROUP = "239.255.0.1"
+NETWORK_ENV = ("CYCLONEDDS_URI", "FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE",
+               "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_STATIC_PEERS", "ROS_LOCALHOST_ONLY", "HDRQN_DDS_INTERFACE",
+               "RMW_IMPLEMENTATION", "HDRQN_MIDDLEWARE", "ROS_DOMAIN_ID")
+"""Cleared for every node process, so only the backends' own defaults (or the test's
+``dds_interface``) decide where traffic goes."""
+
+CAPTURE = r"""
+import json, select, socket, struct, sys, time
+ETH_P_ALL, SOL_PACKET, PACKET_STATISTICS, PACKET_OUTGOING = 0x0003, 263, 6, 4
+socks, stats = {}, {}
+for name in sys.argv[1].split(","):
+    sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, 0)  # receives nothing until bound
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, 33, 8 << 20)  # SO_RCVBUFFORCE (root)
+    except OSError:
+        pass
+    sock.bind((name, ETH_P_ALL))
+    socks[sock] = name
+    stats[name] = {"frames": 0, "outgoing": 0, "ethertypes": {}, "udp": {}, "udp_frames": 0, "drops": 0}
+
+def take(sock):
+    frame, addr = sock.recvfrom(65535)
+    st = stats[socks[sock]]
+    st["frames"] += 1
+    st["outgoing"] += addr[2] == PACKET_OUTGOING
+    ethertype = "%04x" % int.from_bytes(frame[12:14], "big")
+    st["ethertypes"][ethertype] = st["ethertypes"].get(ethertype, 0) + 1
+    if ethertype == "0800" and len(frame) >= 34 and frame[23] == 17:
+        udp = 14 + (frame[14] & 0x0F) * 4
+        dst = "%s:%d" % (socket.inet_ntoa(frame[30:34]), int.from_bytes(frame[udp + 2:udp + 4], "big"))
+        st["udp_frames"] += 1
+        st["udp"][dst] = st["udp"].get(dst, 0) + 1
+
+print("ready", flush=True)
+deadline = time.monotonic() + float(sys.argv[2])
+while True:
+    ready = select.select([*socks, sys.stdin], [], [], max(0.0, deadline - time.monotonic()))[0]
+    if not ready or sys.stdin in ready:  # stdin closed (or the time limit): stop
+        break
+    for sock in ready:
+        take(sock)
+for sock in socks:  # what the kernel had queued before the stop
+    sock.setblocking(False)
+    while True:
+        try:
+            take(sock)
+        except BlockingIOError:
+            break
+    stats[socks[sock]]["drops"] = struct.unpack("II", sock.getsockopt(SOL_PACKET, PACKET_STATISTICS, 8))[1]
+print(json.dumps(stats), flush=True)
+"""
+
+NODE = r"""
+import json, sys
+import numpy as np
+from hdrqn_ros.middleware import open_middleware
+from hdrqn_ros.protocol import wire as P
+role, want, limit_s = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
+mw = open_middleware(sys.argv)
+network = getattr(mw, "network", None) or getattr(mw, "interface", None)
+pixels = np.arange(44 * 44 * 3, dtype=np.uint32).astype(np.uint8).reshape(44, 44, 3)
+sent, got = [0], []
+try:
+    node = mw.create_node(role)
+    if role == "talker":
+        pub = node.create_publisher(P.IMAGE, sys.argv[4])
+        def tick():
+            sent[0] += 1
+            pub.publish(P.make_image(node, sent[0] * 1_000_000, pixels, "camera"))
+        node.create_timer(0.05, tick)
+    else:
+        def on_image(msg):
+            key, image = P.read_image(msg, 44, 44)
+            got.append(key if (image == pixels).all() else -1)
+        node.create_subscription(P.IMAGE, sys.argv[4], on_image)
+    mw.spin(until=lambda: len(got) >= want if role == "listener" else False, timeout_s=limit_s)
+except KeyboardInterrupt:  # the test stops the talker with SIGINT
+    pass
+finally:
+    mw.shutdown()
+print(json.dumps({"role": role, "backend": mw.backend, "network": network, "sent": sent[0], "got": got}),
+      flush=True)
+"""
+
+
+@dataclass
+class Netns:
+    name: str
+    ifname: str      # the non-loopback interface a leak would use
+    kind: str        # "dummy" or "veth"
+
+    def ip(self, *args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["ip", *args], capture_output=True, text=True, timeout=20)
+
+    def must(self, *args: str) -> None:
+        run = self.ip(*args)
+        if run.returncode != 0:
+            raise OSError(f"ip {' '.join(args)}: {run.stderr.strip() or run.returncode}")
+
+    def exec_argv(self, *argv: str) -> list[str]:
+        return ["ip", "netns", "exec", self.name, *argv]
+
+
+def make_netns(tag: str) -> Netns:
+    net = Netns(f"hdrqn-lo-{tag}", f"hq{tag}d", "dummy")
+    net.must("netns", "add", net.name)
+    try:
+        net.must("-n", net.name, "link", "set", "lo", "up")
+        # IPv6 off in this namespace only: no router solicitations, DAD or MLD on the interface
+        subprocess.run(net.exec_argv(sys.executable, "-c", "import pathlib\n"
+                                     "for c in ('all', 'default'):\n"
+                                     "    p = pathlib.Path(f'/proc/sys/net/ipv6/conf/{c}/disable_ipv6')\n"
+                                     "    p.exists() and p.write_text('1')"), check=True, timeout=20,
+                       capture_output=True)
+        if net.ip("-n", net.name, "link", "add", net.ifname, "type", "dummy").returncode != 0:
+            # no dummy driver: a veth pair with both ends in the namespace (its peer only listens)
+            net.kind = "veth"
+            net.must("-n", net.name, "link", "add", net.ifname, "type", "veth", "peer", "name", f"hq{tag}p")
+            net.must("-n", net.name, "link", "set", f"hq{tag}p", "up")
+        net.must("-n", net.name, "link", "set", net.ifname, "multicast", "on", "up")
+        net.must("-n", net.name, "addr", "add", f"{SUBNET}.1/24", "dev", net.ifname)
+        net.must("-n", net.name, "route", "add", "default", "via", f"{SUBNET}.254", "dev", net.ifname)
+    except BaseException:
+        net.ip("netns", "del", net.name)
+        raise
+    return net
+
+
+@pytest.fixture(scope="module")
+def netns():
+    """The namespace of the module doc (one per module); skips where it cannot be made."""
+    if os.geteuid() != 0:
+        pytest.skip("network namespaces need root")
+    if shutil.which("ip") is None:
+        pytest.skip("no `ip` command (iproute2)")
+    tag = str(os.getpid())
+    try:
+        net = make_netns(tag)
+    except (OSError, subprocess.SubprocessError) as exc:
+        pytest.skip(f"cannot create the test's network namespace and interface: {exc}")
+    try:
+        yield net
+    finally:
+        net.ip("netns", "del", net.name)
+    assert net.name not in net.ip("netns", "list").stdout.split(), "namespace left over"
+
+
+def kill(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait(timeout=10)
+
+
+class Capture:
+    """The AF_PACKET helper in the namespace: started before the nodes, stopped after them."""
+
+    def __init__(self, net: Netns, interfaces: list[str], limit_s: float = 50.0):
+        self.proc = subprocess.Popen(net.exec_argv(sys.executable, "-c", CAPTURE, ",".join(interfaces), str(limit_s)),
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        line = self.proc.stdout.readline()
+        if line.strip() != "ready":
+            kill(self.proc)
+            raise AssertionError(f"the capture did not start: {line!r} {self.proc.stderr.read()[-2000:]}")
+
+    def stop(self) -> dict:
+        try:
+            out, err = self.proc.communicate(timeout=15)  # closes stdin: the helper drains and reports
+        finally:
+            kill(self.proc)
+        assert self.proc.returncode == 0, f"capture failed ({self.proc.returncode}): {err[-2000:]}"
+        return json.loads(out.strip().splitlines()[-1])
+
+
+def summary(stats: dict) -> str:
+    """One interface's tally, short: frame counts and the UDP destinations (ports of 127.0.0.1 folded)."""
+    udp = {dst: n for dst, n in stats["udp"].items() if not dst.startswith("127.0.0.1:")}
+    local = [dst for dst in stats["udp"] if dst.startswith("127.0.0.1:")]
+    if local:
+        udp[f"127.0.0.1 ({len(local)} ports)"] = sum(stats["udp"][dst] for dst in local)
+    return (f"{stats['frames']} frames ({stats['outgoing']} outgoing, {stats['drops']} dropped), ethertypes "
+            f"{stats['ethertypes']}, {stats['udp_frames']} UDP to {udp}")
+
+
+def start_node(net: Netns, backend: str, domain_id: int, role: str, limit_s: float, *ros_args: str) -> subprocess.Popen:
+    env = {k: v for k, v in os.environ.items() if k not in NETWORK_ENV}
+    env.update(HDRQN_MIDDLEWARE=backend, ROS_DOMAIN_ID=str(domain_id))
+    argv = [sys.executable, "-c", NODE, role, str(WANT), str(limit_s), TOPIC]
+    if ros_args:
+        argv += ["--ros-args", *ros_args]
+    return subprocess.Popen(net.exec_argv(*argv), env=env, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+
+
+def report(proc: subprocess.Popen, timeout: float) -> dict:
+    """The node's JSON line (after it exits); fails with its stderr if it did not exit cleanly."""
+    out, err = proc.communicate(timeout=timeout)
+    assert proc.returncode == 0, f"node exited with {proc.returncode}:\n{err[-3000:]}"
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def stop_talker(proc: subprocess.Popen) -> dict:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    return report(proc, timeout=15)
+
+
+def needs(*backends: str):
+    marks = [pytest.mark.skipif(not HAVE_RCLPY, reason="rclpy (ROS 2 Jazzy wheels) not installed")] \
+        if "rclpy" in backends else []
+    return pytest.param(*backends, marks=marks, id="-to-".join(dict.fromkeys(backends)))
+
+
+def loopback_description(backend: str) -> str:
+    return "rmw_fastrtps_cpp on loopback only" if backend == "rclpy" else "lo"
+
+
+@pytest.mark.parametrize("talker_backend, listener_backend",
+                         [needs("rclpy", "rclpy"), needs("cyclone", "cyclone"), needs("rclpy", "cyclone")])
+def test_nodes_talk_over_loopback_only(netns, domain, talker_backend, listener_backend):
+    """A talker and a listener exchange images: zero frames on the namespace's other interface."""
+    capture = Capture(netns, [netns.ifname, "lo"])
+    listener = talker = None
+    try:
+        listener = start_node(netns, listener_backend, domain, "listener", 30.0)
+        talker = start_node(netns, talker_backend, domain, "talker", 40.0)
+        heard = report(listener, timeout=35)
+        said = stop_talker(talker)
+    finally:
+        for proc in (listener, talker):
+            if proc is not None:
+                kill(proc)
+        seen = capture.stop()
+    print(f"{talker_backend} -> {listener_backend} on {netns.kind} {netns.ifname}: sent {said['sent']}, "
+          f"got {len(heard['got'])}; {netns.ifname}: {summary(seen[netns.ifname])}; lo: {summary(seen['lo'])}")
+    assert len(heard["got"]) >= WANT and -1 not in heard["got"], f"listener got {heard['got']}"
+    assert heard["got"] == sorted(heard["got"]), "images out of order"
+    assert said["network"] == loopback_description(talker_backend)
+    assert heard["network"] == loopback_description(listener_backend)
+    leak = seen[netns.ifname]
+    assert leak["frames"] == 0, f"traffic left loopback on {netns.ifname}: {leak}"
+    assert leak["drops"] == 0, f"the capture dropped frames on {netns.ifname}: {leak}"
+    # the same capture saw the nodes' datagrams on lo (unicast to 127.0.0.1): it was looking.
+    # (Cyclone's one start-up multicast probe, TTL 0 via 127.0.0.1, shows here on lo too.)
+    lo = seen["lo"]
+    assert sum(n for dst, n in lo["udp"].items() if dst.startswith("127.0.0.1:")) >= 2 * WANT, \
+        f"the capture saw too little UDP to 127.0.0.1 on lo: {lo}"
+
+
+@pytest.mark.parametrize("backend", [needs("rclpy"), needs("cyclone")])
+def test_control_talker_on_interface_is_captured(netns, domain, backend):
+    """The same talker told to use the namespace's interface: the capture must see its datagrams."""
+    capture = Capture(netns, [netns.ifname])
+    talker = None
+    try:
+        talker = start_node(netns, backend, domain, "talker", 2.5, "-p", f"dds_interface:={netns.ifname}")
+        said = report(talker, timeout=30)
+    finally:
+        if talker is not None:
+            kill(talker)
+        seen = capture.stop()[netns.ifname]
+    print(f"control {backend} on {netns.kind} {netns.ifname}: {summary(seen)}")
+    assert netns.ifname in said["network"], said
+    assert seen["udp_frames"] > 0, f"the capture saw no UDP datagram on {netns.ifname}: {seen}"
+    dsts = {dst.rpartition(":")[0] for dst in seen["udp"]}
+    assert all(d == DISCOVERY_GROUP or d.startswith(f"{SUBNET}.") for d in dsts), seen["udp"]
+    # SPDP discovery: the multicast group on the domain's discovery port (7400 + 250 * domain)
+    assert f"{DISCOVERY_GROUP}:{7400 + 250 * domain}" in seen["udp"], seen["udp"]

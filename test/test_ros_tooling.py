@@ -1,0 +1,342 @@
+"""ROS 2 tooling against a real graph of rclpy node processes (hdrqn-v2, one group): what
+``ros2 param``, ``ros2 node/topic list``, ``ros2 topic info`` and ``/rosout`` see, and the
+node loggers on real rclpy (severities, throttled warnings). Skipped where rclpy cannot be
+imported.
+
+The test process's own rclpy context comes from :class:`RclpyMiddleware`, which applies
+the loopback-only Fast DDS defaults before ``rclpy.init``; its rclpy node
+(``RclpyNode._node``) is used for the rclpy APIs the ``ros2`` CLI uses.
+"""
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import pytest
+import yaml
+
+pytest.importorskip("rclpy", reason="ROS 2 Jazzy (rclpy) is not installed here")
+
+from rcl_interfaces.msg import Log  # noqa: E402
+from rclpy.parameter import Parameter, parameter_value_to_python  # noqa: E402
+from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+
+from hdrqn_ros.middleware.rclpy_backend import RclpyMiddleware, RclpyNode  # noqa: E402
+from hdrqn_ros.nodes import controllers, environment, learner, nav  # noqa: E402
+from hdrqn_ros.nodes.common import ENV_DEFAULTS  # noqa: E402
+from hdrqn_ros.protocol import wire as P  # noqa: E402
+from hdrqn_ros.supervisor import Supervisor  # noqa: E402
+from hdrqn_ros.throttle import BURST  # noqa: E402
+
+from test_graph import CONFIG, ENV, _domains, start_graph, wait_for  # noqa: E402
+
+EPISODES = 50
+"""The learner's ``episodes`` (not its default 1000); far more than the module's run time
+allows, so every node stays up while it is probed."""
+NODES = ("environment", "critic", "meta_controller", "sub_controller", "learner")
+DECLARED = {
+    "environment": environment.PARAMETERS,
+    "critic": ENV_DEFAULTS,
+    "meta_controller": {**controllers.CONTROLLER_PARAMETERS, **nav.META_PARAMETERS},
+    "sub_controller": {**controllers.CONTROLLER_PARAMETERS, **nav.SUB_PARAMETERS, "subgoal_table": ""},
+    "learner": learner.PARAMETERS,
+}
+"""What each node declares (``declare_parameters`` in its module)."""
+RCLPY_PARAMETERS = {"use_sim_time", "start_type_description_service"}
+"""Parameters every rclpy node declares itself (Jazzy)."""
+RCLPY_TOPICS = {"/rosout": "rcl_interfaces/msg/Log", "/parameter_events": "rcl_interfaces/msg/ParameterEvent"}
+"""Topics every rclpy node publishes."""
+ROSOUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+"""What a ``/rosout`` subscriber asks for: rcl's rosout publisher profile (reliable,
+transient-local, keep-last 1000; ``rcl_qos_profile_rosout_default``)."""
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "topics.md"
+_ROW = re.compile(r"^\| `(?P<topic>[^`]+)` \| `(?P<type>\w+/msg/\w+)` \| [^|]+ \| (?P<pub>[^|]+) \| (?P<subs>[^|]+) \|$")
+
+
+def documented_topics() -> dict[str, dict[str, Any]]:
+    """The topics table of ``docs/topics.md`` (section "Topics"), names resolved in ``/``:
+    ``{"/env_step": {"type": ..., "publisher": "environment", "subscribers": {...}}}``."""
+    section = DOCS.read_text().split("\n## Topics\n", 1)[1].split("\n## ", 1)[0]
+    rows = {}
+    for line in section.splitlines():
+        if m := _ROW.match(line.strip()):
+            subs = re.sub(r"\([^)]*\)", "", m["subs"])  # drop the conditions, "(hdrqn-v2 only)"
+            rows["/" + m["topic"].lstrip("/")] = {
+                "type": m["type"], "publisher": re.match(r"\w+", m["pub"].strip())[0],
+                "subscribers": set(re.findall(r"\b(?:%s)\b" % "|".join(NODES), subs)) - {"none"}}
+    return rows
+
+
+def nav2_topics() -> dict[str, dict[str, Any]]:
+    """The Nav2 adapter topics ``start_graph`` turns on (subgoal and action tables; the
+    "Notes" of docs/topics.md): ``goal_pose`` and ``cmd_vel`` at their default names."""
+    stamped = yaml.safe_load((CONFIG / "nav2" / "actions.yaml").read_text()).get("stamped", False)
+    twist = "geometry_msgs/msg/TwistStamped" if stamped else "geometry_msgs/msg/Twist"
+    return {"/" + nav.META_PARAMETERS["goal_pose_topic"]: {"type": P.POSE_STAMPED, "publisher": "meta_controller"},
+            "/" + nav.SUB_PARAMETERS["cmd_vel_topic"]: {"type": twist, "publisher": "sub_controller"}}
+
+
+def eventually(check: Callable[[], str | None], spin: Callable[[float], None], timeout: float, what: str,
+               sup: Supervisor | None = None) -> None:
+    """Spin until ``check()`` returns None (ok); on timeout fail with its last complaint."""
+    end = time.monotonic() + timeout
+    while True:
+        if sup is not None:
+            sup.poll()
+            assert not [n for n, rc in sup.returncodes.items() if rc is not None], \
+                f"node processes exited: {sup.returncodes}"
+        problem = check()
+        if problem is None:
+            return
+        if time.monotonic() > end:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}: {problem}")
+        spin(0.1)
+
+
+@dataclass
+class Graph:
+    """The running graph and the test process's probe node (rclpy)."""
+
+    mw: RclpyMiddleware
+    probe: RclpyNode
+    sup: Supervisor
+    tmp: Path
+    rosout: list = field(default_factory=list)  # every Log received on /rosout
+    steps: list = field(default_factory=list)  # env_steps from /env_step
+
+    @property
+    def node(self):
+        """The probe's rclpy node, for the rclpy graph and parameter APIs."""
+        return self.probe._node
+
+    def spin(self, timeout_s: float) -> None:
+        self.mw.spin(timeout_s=timeout_s)
+
+    def result(self, future, timeout_s: float, what: str):
+        self.mw.spin(until=future.done, timeout_s=timeout_s)
+        assert future.done(), f"no answer within {timeout_s} s: {what}"
+        return future.result()
+
+
+@pytest.fixture(scope="module")
+def graph(tmp_path_factory):
+    """One graph for the module: every node process on rclpy, in a DDS domain of its own.
+    The probe subscribes to /rosout before the nodes start, so it sees their first lines."""
+    tmp = tmp_path_factory.mktemp("ros_tooling")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("ROS_DOMAIN_ID", str(next(_domains) % 200 + 20))
+        mp.delenv("CYCLONEDDS_URI", raising=False)
+        mp.setenv("HDRQN_MIDDLEWARE", "rclpy")  # inherited by the node processes
+        mw = RclpyMiddleware(["probe"])  # loopback defaults before rclpy.init
+        sup = None
+        try:
+            probe = mw.create_node("probe")
+            g = Graph(mw, probe, None, tmp)  # type: ignore[arg-type]
+            probe._node.create_subscription(Log, "/rosout", g.rosout.append, ROSOUT_QOS)
+            probe.create_subscription(P.FLOATS, "/env_step", lambda m: g.steps.append(P.read_record(m, P.STEP_FIELDS)),
+                                      P.STEP_QOS)
+            sup = g.sup = start_graph(tmp, episodes=EPISODES)
+
+            def running() -> str | None:
+                names = {name for name, ns in g.node.get_node_names_and_namespaces() if ns == "/"}
+                if missing := set(NODES) - names:
+                    return f"nodes {sorted(missing)} not in the graph yet"
+                if not any(s["env_steps"] > 0 for s in g.steps):
+                    return "the environment has not stepped yet"
+                return None
+
+            eventually(running, g.spin, 120, "the graph to run", sup)
+            yield g
+        finally:
+            if sup is not None:
+                sup.stop()
+            mw.shutdown()
+
+
+def started_parameters(tmp: Path) -> dict[str, dict[str, Any]]:
+    """Per node, what it was started with: ``params.yaml`` (``/**``, then ``/**/<node>`` or
+    ``/learner``) and the command line (``seed``; ``resume`` for the learner)."""
+    doc = yaml.safe_load((tmp / "run" / "params.yaml").read_text())
+    shared = doc["/**"]["ros__parameters"]
+    started = {}
+    for node in NODES:
+        key = "/learner" if node == "learner" else f"/**/{node}"
+        started[node] = {**shared, **doc.get(key, {}).get("ros__parameters", {}), "seed": 3}
+    started["learner"]["resume"] = True
+    return started
+
+
+def test_declared_parameter_dicts_exist():
+    """The names this module compares against are the nodes' own declarations."""
+    assert {"algo", "env", "view", "seed"} <= set(ENV_DEFAULTS)
+    assert {"wait_for_learner", "step_period", "publish_clock"} <= set(environment.PARAMETERS)
+    assert {"episodes", "run_dir", "groups", "config"} <= set(learner.PARAMETERS)
+    assert {"epsilon", "checkpoint", "meta_state"} <= set(controllers.CONTROLLER_PARAMETERS)
+    assert controllers.MetaControllerNode.nav_parameters == nav.META_PARAMETERS
+    assert controllers.SubControllerNode.nav_parameters == {**nav.SUB_PARAMETERS, "subgoal_table": ""}
+
+
+def test_parameters_through_the_parameter_services(graph):
+    """What ``ros2 param list`` / ``ros2 param get`` show, for every node: the declared
+    names (plus rclpy's own), and the values the node was started with."""
+    started = started_parameters(graph.tmp)
+    for node in NODES:
+        client = AsyncParameterClient(graph.node, f"/{node}")
+        graph.mw.spin(until=client.services_are_ready, timeout_s=30)
+        assert client.services_are_ready(), f"/{node} offers no parameter services"
+        names = set(graph.result(client.list_parameters(), 10, f"list_parameters of /{node}").result.names)
+        declared = set(DECLARED[node])
+        assert declared <= names, f"/{node} lacks {sorted(declared - names)}"
+        assert names - declared <= RCLPY_PARAMETERS, f"/{node} has undeclared {sorted(names - declared)}"
+        assert "use_sim_time" in names
+        ordered = sorted(declared)
+        reply = graph.result(client.get_parameters(ordered), 10, f"get_parameters of /{node}")
+        values = {name: parameter_value_to_python(v) for name, v in zip(ordered, reply.values)}
+        expected = {**DECLARED[node], **started[node]}
+        expected = {name: expected[name] for name in ordered}
+        assert values == expected, f"/{node}"
+        # the values themselves, not only "what params.yaml says"
+        assert (values["algo"], values["env"], values["view"], values["seed"]) == ("hdrqn-v2", ENV, "5", 3), node
+    assert values["episodes"] == EPISODES != learner.PARAMETERS["episodes"]
+    assert values["run_dir"] == str(graph.tmp / "run") and values["groups"] == ["/"] and values["resume"] is True
+    env = AsyncParameterClient(graph.node, "/environment")
+    reply = graph.result(env.get_parameters(["wait_for_learner", "publish_clock", "step_log"]), 10, "environment")
+    assert [parameter_value_to_python(v) for v in reply.values] == [True, True, str(graph.tmp / "env_steps.jsonl")]
+    sub = AsyncParameterClient(graph.node, "/sub_controller")
+    reply = graph.result(sub.get_parameters(["action_table", "observation_source"]), 10, "sub_controller")
+    assert [parameter_value_to_python(v) for v in reply.values] == [str(CONFIG / "nav2" / "actions.yaml"), "topic"]
+    # ``ros2 param set``: accepted (no node rejects a change), though read only at start-up
+    result = graph.result(env.set_parameters([Parameter("action_timeout", value=6.0)]), 10, "set_parameters")
+    assert [r.successful for r in result.results] == [True]
+    reply = graph.result(env.get_parameters(["action_timeout"]), 10, "environment")
+    assert parameter_value_to_python(reply.values[0]) == 6.0
+
+
+def test_node_and_topic_introspection_matches_the_docs(graph):
+    """``ros2 node list``, ``ros2 topic list -t`` and ``ros2 node info``: the five nodes,
+    every topic with the type of docs/topics.md, and who publishes what."""
+    table = documented_topics()
+    assert {"/env_step", "/observation", "/learner/status", "/clock", "/sub_state"} <= set(table)
+    assert table["/env_step"]["type"] == P.FLOATS and table["/observation"]["type"] == P.IMAGE
+    assert table["/learner/status"] == {"type": P.STRING, "publisher": "learner", "subscribers": set()}
+    topics = {**table, **nav2_topics()}
+    expected = {name: [row["type"]] for name, row in topics.items()} | {t: [ty] for t, ty in RCLPY_TOPICS.items()}
+
+    names = {name for name, ns in graph.node.get_node_names_and_namespaces() if ns == "/"}
+    assert set(NODES) <= names and names - set(NODES) <= {"probe"}, names
+
+    def topic_list() -> str | None:
+        got = dict(graph.node.get_topic_names_and_types())
+        return None if got == expected else f"got {got}, expected {expected}"
+
+    eventually(topic_list, graph.spin, 20, "the graph's topics", graph.sup)
+    for node in NODES:
+        published = dict(graph.node.get_publisher_names_and_types_by_node(node, "/"))
+        want = {name: [row["type"]] for name, row in topics.items() if row["publisher"] == node}
+        assert published == {**want, **{t: [ty] for t, ty in RCLPY_TOPICS.items()}}, f"publishers of /{node}"
+    subscribed = dict(graph.node.get_subscriber_names_and_types_by_node("environment", "/"))
+    assert subscribed == {name: [row["type"]] for name, row in table.items() if "environment" in row["subscribers"]}
+    # ``ros2 topic info -v /rosout``: rcl's rosout profile, which ROSOUT_QOS asks for
+    offers = [i for i in graph.node.get_publishers_info_by_topic("/rosout") if i.node_name in NODES]
+    assert {i.node_name for i in offers} == set(NODES)
+    for info in offers:
+        assert info.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+        assert info.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+
+
+def test_node_log_lines_reach_rosout(graph):
+    """``ros2 topic echo /rosout``: the nodes' log lines, with their node names, severities
+    and the text of their log files."""
+    def weights_lines() -> str | None:
+        lines = {(m.name, m.level) for m in graph.rosout if "acting with the learner's" in m.msg}
+        want = {("sub_controller", Log.INFO), ("meta_controller", Log.INFO)}
+        return None if want <= lines else f"have {sorted(lines)} of {sorted(want)}"
+
+    eventually(weights_lines, graph.spin, 30, "the controllers' weights lines on /rosout", graph.sup)
+    sub = next(m for m in graph.rosout if m.name == "sub_controller" and "sub weights" in m.msg)
+    assert re.fullmatch(r"acting with the learner's sub weights of update \d+", sub.msg), sub.msg
+    graph_names = {m.name for m in graph.rosout} - {"probe"}
+    assert graph_names <= set(NODES), graph_names
+    logs = graph.tmp / "logs"
+    for m in graph.rosout:
+        if m.name in NODES:  # the same line in the node's console output (its log file)
+            log = logs / ("learner.log" if m.name == "learner" else f"graph_{m.name}.log")
+            assert m.msg in log.read_text(), f"{m.name}: {m.msg!r} not in {log.name}"
+    assert all(m.stamp.sec > 0 for m in graph.rosout)
+
+
+LOG_SEQUENCE = [("info", Log.INFO, "INFO"), ("warning", Log.WARN, "WARN"), ("error", Log.ERROR, "ERROR"),
+                ("info", Log.INFO, "INFO")]
+
+
+def test_logger_severities_in_process_reach_rosout(graph):
+    """info, warning, error, info again through ``node.logger`` of an rclpy node: all four
+    arrive on /rosout, in order, with their severities (no "severity cannot be changed")."""
+    node = graph.mw.create_node("log_probe")
+    tag = f"tooling-{time.monotonic_ns()}"
+    for i, (method, _, _) in enumerate(LOG_SEQUENCE):
+        getattr(node.logger, method)("%s line %d", tag, i)
+
+    def arrived() -> str | None:
+        got = [m for m in graph.rosout if m.name == "log_probe" and tag in m.msg]
+        return None if len(got) >= len(LOG_SEQUENCE) else f"{len(got)} lines so far"
+
+    eventually(arrived, graph.spin, 10, "the four log_probe lines on /rosout")
+    got = [(m.msg, m.level) for m in graph.rosout if m.name == "log_probe" and tag in m.msg]
+    assert got == [(f"{tag} line {i}", level) for i, (_, level, _) in enumerate(LOG_SEQUENCE)]
+
+
+def run_rclpy_child(code: str, timeout: float = 60) -> subprocess.CompletedProcess:
+    """``code`` in a new Python process with ``mw`` (an RclpyMiddleware: loopback defaults
+    applied before rclpy.init) and ``node`` (its node ``child``); shut down at the end."""
+    script = ("from hdrqn_ros.middleware.rclpy_backend import RclpyMiddleware\n"
+              "mw = RclpyMiddleware(['child'])\n"
+              "node = mw.create_node('child')\n"
+              "try:\n" + "".join(f"    {line}\n" for line in code.splitlines()) +
+              "finally:\n    mw.shutdown()\n")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=timeout)
+    assert run.returncode == 0, run.stderr
+    assert "Traceback" not in run.stderr and "cannot be changed" not in run.stderr, run.stderr
+    return run
+
+
+def test_logger_severities_show_on_stderr(graph):
+    """The same four lines in a process of their own: rclpy's console output (stderr)."""
+    run = run_rclpy_child("\n".join(f"node.logger.{method}('stderr line %d', {i})"
+                                    for i, (method, _, _) in enumerate(LOG_SEQUENCE)))
+    lines = [line for line in run.stderr.splitlines() if "stderr line" in line]
+    assert len(lines) == len(LOG_SEQUENCE), run.stderr
+    for i, (line, (_, _, severity)) in enumerate(zip(lines, LOG_SEQUENCE)):
+        assert re.fullmatch(rf"\[{severity}\] \[[\d.]+\] \[child\]: stderr line {i}", line), line
+
+
+def test_throttled_rejections_on_rclpy(graph):
+    """200 rejections within a second through :class:`Throttle` on an rclpy node's logger:
+    the burst, then nothing more until the period ends; each line has the running count."""
+    run = run_rclpy_child("import time\n"
+                          "from hdrqn_ros.throttle import Throttle\n"
+                          "rejected = Throttle(node.logger, 'rejected a message on /probe')\n"
+                          "start = time.monotonic()\n"
+                          "for i in range(200):\n"
+                          "    rejected.warn(f'bad message {i}')\n"
+                          "print(time.monotonic() - start, rejected.count)\n")
+    elapsed, count = run.stdout.split()
+    assert float(elapsed) < 1.0 and int(count) == 200
+    lines = [line for line in run.stderr.splitlines() if "rejected a message on /probe" in line]
+    assert BURST <= len(lines) <= BURST + 1, run.stderr
+    counts = []
+    for line in lines:
+        m = re.fullmatch(r"\[WARN\] \[[\d.]+\] \[child\]: rejected a message on /probe: bad message (\d+) "
+                         r"\((\d+) so far\)", line)
+        assert m, line
+        assert int(m[2]) == int(m[1]) + 1, line  # the count includes this rejection
+        counts.append(int(m[2]))
+    assert counts[:BURST] == list(range(1, BURST + 1)) and counts == sorted(counts)

@@ -11,6 +11,16 @@ NO_RCLPY = pytest.mark.skipif(not rclpy_available(), reason="rclpy (the ROS 2 Ja
 BACKEND_PARAMS = [pytest.param("rclpy", marks=NO_RCLPY), "cyclone"]
 
 
+@pytest.fixture(scope="session", autouse=True)
+def ros_log_dir(tmp_path_factory):
+    """rcl's log files of every rclpy context (this process's and its children's) go to a
+    temporary directory, not ~/.ros/log."""
+    mp = pytest.MonkeyPatch()
+    mp.setenv("ROS_LOG_DIR", str(tmp_path_factory.mktemp("ros_log")))
+    yield
+    mp.undo()
+
+
 @pytest.fixture(params=BACKEND_PARAMS)
 def backend(request, monkeypatch) -> str:
     """Each test runs twice: node processes (and the test's own probe node) on real rclpy,

@@ -1,5 +1,5 @@
 """Bounded resources: an oversized image or weights message is rejected before decoding,
-logged, and does not grow the receiving node's memory (real Cyclone DDS processes)."""
+logged, and does not grow the receiving node's memory (real rclpy and Cyclone DDS processes)."""
 from __future__ import annotations
 
 import sys
@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrqn_ros.middleware.cyclone import CycloneMiddleware
 from hdrqn_ros.middleware.port import LATCHED_QOS
 from hdrqn_ros.protocol import wire as P
 from hdrqn_ros.supervisor import ProcessSpec, Supervisor
 
+from conftest import probe_middleware
 from test_graph import domain, wait_for  # noqa: F401  (domain: a fixture)
 
 LIMIT = 1 << 20  # the sub-controller's max_message_bytes in this test
@@ -24,20 +24,20 @@ def rss_mib(pid: int) -> float:
     raise AssertionError("no VmRSS")
 
 
-def test_oversized_images_and_weights_are_dropped_without_growing_memory(domain, tmp_path):
+def test_oversized_images_and_weights_are_dropped_without_growing_memory(domain, backend, tmp_path):
     sub = ProcessSpec("sub", [sys.executable, "-c", "import sys; from hdrqn_ros.nodes.controllers import main_sub as m;"
                               " sys.exit(m())", "--ros-args", "-p", "algo:=dqn", "-p", f"max_message_bytes:={LIMIT}"])
     sup = Supervisor([sub], log_dir=tmp_path / "logs", stop_timeout_s=5)
     log = tmp_path / "logs" / "sub.log"
     sup.start()
-    mw = CycloneMiddleware([])
+    mw = probe_middleware(backend)
     try:
         node = mw.create_node("flooder")
         obs_pub = node.create_publisher(P.IMAGE, "/observation", P.STEP_QOS)
         weights_pub = node.create_publisher(P.BYTES, P.WEIGHTS["sub"], LATCHED_QOS)
         for pub in (obs_pub, weights_pub):
-            mw.spin(until=lambda: bool(pub.writer.get_matched_subscriptions()), timeout_s=60)
-            assert pub.writer.get_matched_subscriptions(), "the sub-controller never subscribed"
+            mw.spin(until=lambda: pub.get_subscription_count() > 0, timeout_s=60)
+            assert pub.get_subscription_count(), "the sub-controller never subscribed"
         pid = sup.pids["sub"]
         big_image = np.zeros((1024, 1024, 3), np.uint8)  # 3 MiB, over the 1 MiB limit
         big_weights = bytes(4 * LIMIT)

@@ -1,4 +1,4 @@
-"""Fault tests on the real node graph (Cyclone DDS processes, as ``hdrqn up`` runs them):
+"""Fault tests on the real node graph (rclpy and Cyclone DDS processes, as ``hdrqn up`` runs them):
 kill -9 each node in turn while it trains with recording on. The supervisor respawns it,
 the learner resumes from its checkpoint and refills its replay from its bags, and no
 transition the learner acknowledged (flushed to its bag) is lost. The report is printed."""
@@ -40,7 +40,7 @@ def matches_some_env_step(tr: dict, env_rows: list[dict]) -> bool:
     return any(all(tr[f] == row[f] for f in fields) for row in env_rows)
 
 
-def test_kill_each_node_in_turn_loses_no_acknowledged_transition(domain, tmp_path):
+def test_kill_each_node_in_turn_loses_no_acknowledged_transition(domain, backend, tmp_path):
     cfg = build_config([], algo="hdrqn-v2", env=ENV, episodes=1000, seed=5, learning_starts=60, checkpoint_every=2,
                        eval_every=0, update_every=5, sub={"batch_size": 2}, meta={"batch_size": 2})
     run_dir, bag = tmp_path / "run", tmp_path / "learner-bag"

@@ -244,7 +244,7 @@ def start_multihost_graph(tmp_path: Path, net: LoopbackHosts) -> Supervisor:
 
 
 @pytest.mark.parametrize("cut_s", [WITHIN_LEASE_S, BEYOND_LEASE_S], ids=["within-lease", "beyond-lease"])
-def test_actor_group_cut_off_and_restored_rejoins(domain, hosts, tmp_path, cut_s):
+def test_actor_group_cut_off_and_restored_rejoins(domain, backend, hosts, tmp_path, cut_s):
     """Group0 (host a) and group1 (host b) feed the learner; host a's link goes down for
     ``cut_s`` s: the learner keeps training on group1 and group0 rejoins when it is back."""
     a, b = "/group0", "/group1"

@@ -1,4 +1,5 @@
-"""``hdrqn bag play``: a real player process over real Cyclone DDS (loopback only), received here."""
+"""``hdrqn bag play``: a real player process on real rclpy and on real Cyclone DDS (loopback
+only), received here by a node of the same backend, byte for byte."""
 from __future__ import annotations
 
 import os
@@ -15,7 +16,10 @@ import pytest
 from hdrqn_ros.middleware.cyclone import CycloneMiddleware
 from hdrqn_ros.middleware.messages import typestore
 from hdrqn_ros.middleware.port import QoS
+from hdrqn_ros.nodes.player import on_wire
 from hdrqn_ros.recording.bag import BagWriter, read_messages
+
+from conftest import probe_middleware
 
 TS = typestore()
 T = TS.types
@@ -34,7 +38,6 @@ def domain(monkeypatch):
     monkeypatch.setenv("ROS_DOMAIN_ID", str(d))
     monkeypatch.delenv("CYCLONEDDS_URI", raising=False)
     monkeypatch.delenv("HDRQN_DDS_INTERFACE", raising=False)
-    monkeypatch.setenv("HDRQN_MIDDLEWARE", "cyclone")
     return d
 
 
@@ -73,9 +76,10 @@ def bags(tmp_path_factory):
 
 
 def recorded(bag: Path) -> dict[str, list[bytes]]:
+    """The bag's messages per topic, as they go on the wire (zero-padded to 4 bytes)."""
     out: dict[str, list[bytes]] = {}
     for topic, _type, _t, data in read_messages(bag):
-        out.setdefault(topic, []).append(data)
+        out.setdefault(topic, []).append(on_wire(data))
     return out
 
 
@@ -87,17 +91,17 @@ def start_play(tmp_path: Path, *args: str) -> tuple[subprocess.Popen, Path]:
 
 
 class Receiver:
-    """Subscribes (through CycloneMiddleware) to the bag topics and /clock; keeps CDR bytes."""
+    """Subscribes (on ``backend``) to the bag topics and /clock; keeps the CDR bytes as received."""
 
-    def __init__(self):
-        self.mw = CycloneMiddleware([])
+    def __init__(self, backend: str):
+        self.mw = probe_middleware(backend)
         self.node = self.mw.create_node("bag_probe")
         self.got: dict[str, list[bytes]] = {}
         subs = {t: (ty, QoS(depth=200, reliable=rel == "reliable")) for t, (ty, rel, _l) in TOPICS.items()}
         subs["/clock"] = (CLOCK, QoS(depth=200))
         for topic, (type_name, qos) in subs.items():
-            self.node.create_subscription(type_name, topic, lambda m, t=topic: self.got.setdefault(t, []).append(
-                self.node.to_cdr(m)), qos)
+            self.node.create_subscription(type_name, topic, lambda m, t=topic: self.got.setdefault(t, []).append(m),
+                                          qos, raw=True)
 
     def spin_until(self, cond, timeout: float, what: str, proc: subprocess.Popen | None = None, log=None):
         end = time.monotonic() + timeout
@@ -140,9 +144,9 @@ def test_cdr_round_trip_equals_rosbags(domain, bags):
         mw.shutdown()
 
 
-def test_play_delivers_every_message_bit_exact_with_clock(domain, bags, tmp_path):
+def test_play_delivers_every_message_bit_exact_with_clock(domain, backend, bags, tmp_path):
     want = recorded(bags / "main")
-    rx = Receiver()
+    rx = Receiver(backend)
     proc = None
     try:
         proc, log = start_play(tmp_path, str(bags / "main"), "--delay", "2")
@@ -165,9 +169,9 @@ def test_play_delivers_every_message_bit_exact_with_clock(domain, bags, tmp_path
     assert "played 25 messages on 3 topics" in text and "Traceback" not in text
 
 
-def test_loop_and_topic_filter(domain, bags, tmp_path):
+def test_loop_and_topic_filter(domain, backend, bags, tmp_path):
     want = recorded(bags / "main")["/chatter"]
-    rx = Receiver()
+    rx = Receiver(backend)
     proc = None
     try:
         proc, log = start_play(tmp_path, str(bags / "main"), "--loop", "--rate", "4", "--no-clock", "--delay", "2",
@@ -186,11 +190,11 @@ def test_loop_and_topic_filter(domain, bags, tmp_path):
     assert "playing pass 2" in text and "Traceback" not in text
 
 
-def test_two_bags_with_a_recorded_clock(domain, bags, tmp_path):
+def test_two_bags_with_a_recorded_clock(domain, backend, bags, tmp_path):
     """Two bags merge by time; the recorded /clock is played instead of a generated one."""
     want_clock = recorded(bags / "clocked")["/clock"]
     want_scores = recorded(bags / "main")["/scores"]
-    rx = Receiver()
+    rx = Receiver(backend)
     proc = None
     try:
         proc, log = start_play(tmp_path, str(bags / "main"), str(bags / "clocked"), "--rate", "2", "--delay", "2",

@@ -9,7 +9,7 @@ the loopback-only Fast DDS defaults before ``rclpy.init``; its rclpy node
 """
 from __future__ import annotations
 
-import json
+import os
 import re
 import subprocess
 import sys
@@ -35,7 +35,7 @@ from hdrqn_ros.protocol import wire as P  # noqa: E402
 from hdrqn_ros.supervisor import Supervisor  # noqa: E402
 from hdrqn_ros.throttle import BURST  # noqa: E402
 
-from test_graph import CONFIG, ENV, _domains, start_graph, wait_for  # noqa: E402
+from test_graph import CONFIG, ENV, _domains, start_graph  # noqa: E402
 
 EPISODES = 50
 """The learner's ``episodes`` (not its default 1000); far more than the module's run time
@@ -55,23 +55,31 @@ RCLPY_TOPICS = {"/rosout": "rcl_interfaces/msg/Log", "/parameter_events": "rcl_i
 """Topics every rclpy node publishes."""
 ROSOUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
-"""What a ``/rosout`` subscriber asks for: rcl's rosout publisher profile (reliable,
-transient-local, keep-last 1000; ``rcl_qos_profile_rosout_default``)."""
+"""What a ``/rosout`` subscriber asks for: rcl's rosout publisher profile
+(``rcl_qos_profile_rosout_default``: reliable, transient-local, keep-last 1000). Its
+lifespan is 10 s, so a late subscriber gets only the last 10 s of lines: the probe
+subscribes before the nodes start."""
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "topics.md"
-_ROW = re.compile(r"^\| `(?P<topic>[^`]+)` \| `(?P<type>\w+/msg/\w+)` \| [^|]+ \| (?P<pub>[^|]+) \| (?P<subs>[^|]+) \|$")
+_ROW = re.compile(r"^\| `(?P<topic>[^`]+)` \| `(?P<type>\w+/msg/\w+)` \| [^|]+ "
+                  r"\| (?P<pub>[^|]+) \| (?P<subs>[^|]+) \|$")  # topic | type | QoS | publisher | subscribers
 
 
-def documented_topics() -> dict[str, dict[str, Any]]:
+def documented_topics(algo: str = "hdrqn-v2") -> dict[str, dict[str, Any]]:
     """The topics table of ``docs/topics.md`` (section "Topics"), names resolved in ``/``:
-    ``{"/env_step": {"type": ..., "publisher": "environment", "subscribers": {...}}}``."""
+    ``{"/env_step": {"type": ..., "publisher": "environment", "subscribers": {...}}}``. A
+    subscriber whose condition names algorithms ("meta_controller (hdrqn-v1, hdqn)") is
+    left out unless ``algo`` is one of them."""
     section = DOCS.read_text().split("\n## Topics\n", 1)[1].split("\n## ", 1)[0]
     rows = {}
     for line in section.splitlines():
         if m := _ROW.match(line.strip()):
-            subs = re.sub(r"\([^)]*\)", "", m["subs"])  # drop the conditions, "(hdrqn-v2 only)"
-            rows["/" + m["topic"].lstrip("/")] = {
-                "type": m["type"], "publisher": re.match(r"\w+", m["pub"].strip())[0],
-                "subscribers": set(re.findall(r"\b(?:%s)\b" % "|".join(NODES), subs)) - {"none"}}
+            subscribers = set()
+            for sub in re.finditer(r"(\w+)(?: \(([^)]*)\))?", m["subs"]):
+                algos = re.findall(r"\b(?:hdrqn-v[12]|hdqn|drqn|dqn)\b", sub[2] or "")
+                if sub[1] in NODES and (not algos or algo in algos):
+                    subscribers.add(sub[1])
+            rows["/" + m["topic"].lstrip("/")] = {"type": m["type"], "publisher": re.match(r"\w+", m["pub"])[0],
+                                                  "subscribers": subscribers}
     return rows
 
 
@@ -135,14 +143,15 @@ def graph(tmp_path_factory):
         mp.setenv("ROS_DOMAIN_ID", str(next(_domains) % 200 + 20))
         mp.delenv("CYCLONEDDS_URI", raising=False)
         mp.setenv("HDRQN_MIDDLEWARE", "rclpy")  # inherited by the node processes
+        mp.setenv("ROS_LOG_DIR", str(tmp / "ros_log"))  # rcl's log files: here, not in ~/.ros/log
         mw = RclpyMiddleware(["probe"])  # loopback defaults before rclpy.init
         sup = None
         try:
             probe = mw.create_node("probe")
             g = Graph(mw, probe, None, tmp)  # type: ignore[arg-type]
             probe._node.create_subscription(Log, "/rosout", g.rosout.append, ROSOUT_QOS)
-            probe.create_subscription(P.FLOATS, "/env_step", lambda m: g.steps.append(P.read_record(m, P.STEP_FIELDS)),
-                                      P.STEP_QOS)
+            steps = probe.create_subscription(P.FLOATS, "/env_step",
+                                              lambda m: g.steps.append(P.read_record(m, P.STEP_FIELDS)), P.STEP_QOS)
             sup = g.sup = start_graph(tmp, episodes=EPISODES)
 
             def running() -> str | None:
@@ -154,11 +163,12 @@ def graph(tmp_path_factory):
                 return None
 
             eventually(running, g.spin, 120, "the graph to run", sup)
+            g.node.destroy_subscription(steps)  # seen it step; no need to follow every step
             yield g
         finally:
-            if sup is not None:
-                sup.stop()
+            codes = sup.stop() if sup is not None else {}
             mw.shutdown()
+    assert all(rc == 0 for rc in codes.values()), f"node exit codes after SIGINT: {codes}"
 
 
 def started_parameters(tmp: Path) -> dict[str, dict[str, Any]]:
@@ -188,6 +198,7 @@ def test_parameters_through_the_parameter_services(graph):
     """What ``ros2 param list`` / ``ros2 param get`` show, for every node: the declared
     names (plus rclpy's own), and the values the node was started with."""
     started = started_parameters(graph.tmp)
+    got = {}
     for node in NODES:
         client = AsyncParameterClient(graph.node, f"/{node}")
         graph.mw.spin(until=client.services_are_ready, timeout_s=30)
@@ -199,14 +210,16 @@ def test_parameters_through_the_parameter_services(graph):
         assert "use_sim_time" in names
         ordered = sorted(declared)
         reply = graph.result(client.get_parameters(ordered), 10, f"get_parameters of /{node}")
-        values = {name: parameter_value_to_python(v) for name, v in zip(ordered, reply.values)}
+        values = got[node] = {name: parameter_value_to_python(v) for name, v in zip(ordered, reply.values)}
         expected = {**DECLARED[node], **started[node]}
-        expected = {name: expected[name] for name in ordered}
-        assert values == expected, f"/{node}"
+        assert values == {name: expected[name] for name in ordered}, f"/{node}"
         # the values themselves, not only "what params.yaml says"
         assert (values["algo"], values["env"], values["view"], values["seed"]) == ("hdrqn-v2", ENV, "5", 3), node
-    assert values["episodes"] == EPISODES != learner.PARAMETERS["episodes"]
-    assert values["run_dir"] == str(graph.tmp / "run") and values["groups"] == ["/"] and values["resume"] is True
+    assert got["learner"]["episodes"] == EPISODES != learner.PARAMETERS["episodes"]
+    assert (got["learner"]["run_dir"], got["learner"]["groups"], got["learner"]["resume"]) == \
+        (str(graph.tmp / "run"), ["/"], True)
+    assert got["environment"]["wait_for_learner"] is True and got["environment"]["publish_clock"] is True
+    assert got["meta_controller"]["subgoal_table"] == str(CONFIG / "nav2" / "subgoals.yaml")
     env = AsyncParameterClient(graph.node, "/environment")
     reply = graph.result(env.get_parameters(["wait_for_learner", "publish_clock", "step_log"]), 10, "environment")
     assert [parameter_value_to_python(v) for v in reply.values] == [True, True, str(graph.tmp / "env_steps.jsonl")]
@@ -242,8 +255,9 @@ def test_node_and_topic_introspection_matches_the_docs(graph):
         published = dict(graph.node.get_publisher_names_and_types_by_node(node, "/"))
         want = {name: [row["type"]] for name, row in topics.items() if row["publisher"] == node}
         assert published == {**want, **{t: [ty] for t, ty in RCLPY_TOPICS.items()}}, f"publishers of /{node}"
-    subscribed = dict(graph.node.get_subscriber_names_and_types_by_node("environment", "/"))
-    assert subscribed == {name: [row["type"]] for name, row in table.items() if "environment" in row["subscribers"]}
+        subscribed = dict(graph.node.get_subscriber_names_and_types_by_node(node, "/"))
+        want = {name: [row["type"]] for name, row in table.items() if node in row["subscribers"]}
+        assert subscribed == want, f"subscriptions of /{node}"
     # ``ros2 topic info -v /rosout``: rcl's rosout profile, which ROSOUT_QOS asks for
     offers = [i for i in graph.node.get_publishers_info_by_topic("/rosout") if i.node_name in NODES]
     assert {i.node_name for i in offers} == set(NODES)
@@ -263,8 +277,8 @@ def test_node_log_lines_reach_rosout(graph):
     eventually(weights_lines, graph.spin, 30, "the controllers' weights lines on /rosout", graph.sup)
     sub = next(m for m in graph.rosout if m.name == "sub_controller" and "sub weights" in m.msg)
     assert re.fullmatch(r"acting with the learner's sub weights of update \d+", sub.msg), sub.msg
-    graph_names = {m.name for m in graph.rosout} - {"probe"}
-    assert graph_names <= set(NODES), graph_names
+    # every node logs at least its middleware line at start-up
+    assert {m.name for m in graph.rosout} >= set(NODES), sorted({m.name for m in graph.rosout})
     logs = graph.tmp / "logs"
     for m in graph.rosout:
         if m.name in NODES:  # the same line in the node's console output (its log file)
@@ -302,7 +316,8 @@ def run_rclpy_child(code: str, timeout: float = 60) -> subprocess.CompletedProce
               "node = mw.create_node('child')\n"
               "try:\n" + "".join(f"    {line}\n" for line in code.splitlines()) +
               "finally:\n    mw.shutdown()\n")
-    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=timeout)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RCUTILS_")}  # rcutils' default console format
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=timeout, env=env)
     assert run.returncode == 0, run.stderr
     assert "Traceback" not in run.stderr and "cannot be changed" not in run.stderr, run.stderr
     return run

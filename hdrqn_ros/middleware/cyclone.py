@@ -24,7 +24,7 @@ import threading
 import time
 from typing import Any, Callable
 
-from cyclonedds._clayer import ddspy_take
+from cyclonedds._clayer import ddspy_take, ddspy_write
 from cyclonedds.core import GuardCondition, InstanceState, Policy, Qos, ReadCondition, SampleState, ViewState, WaitSet
 from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.pub import DataWriter
@@ -68,6 +68,10 @@ class _Publisher:
         self.writer, self.cls, self.topic = writer, cls, topic
 
     def publish(self, msg: Any) -> None:
+        """``msg``: a message of the topic's type, or its CDR bytes (header first) as they are."""
+        if isinstance(msg, (bytes, bytearray, memoryview)):
+            ddspy_write(self.writer._ref, bytes(msg))
+            return
         if not isinstance(msg, self.cls):
             raise TypeError(f"{self.topic} carries {self.cls.__ros_type__}, not {type(msg).__name__}")
         self.writer.write(msg)
@@ -77,8 +81,9 @@ class _Publisher:
 
 
 class _Subscription:
-    def __init__(self, node: "CycloneNode", reader: DataReader, cls: type, topic: str, callback):
+    def __init__(self, node: "CycloneNode", reader: DataReader, cls: type, topic: str, callback, raw: bool):
         self.node, self.reader, self.cls, self.topic, self.callback = node, reader, cls, topic, callback
+        self.raw = raw
         self.dropped = Throttle(node.logger, f"dropped a sample on {topic}")  # malformed or oversized
 
     def take(self) -> list[Any]:
@@ -93,6 +98,9 @@ class _Subscription:
                 continue
             if len(data) > limit:
                 self.dropped.warn(f"{len(data)} B exceeds the {limit} B message limit")
+                continue
+            if self.raw:
+                out.append(bytes(data))
                 continue
             try:
                 out.append(decode(self.cls, data))
@@ -148,11 +156,11 @@ class CycloneNode(Node):
         return pub
 
     def create_subscription(self, type_name: str, topic: str, callback: Callable[[Any], None],
-                            qos: QoS = DEFAULT_QOS) -> _Subscription:
+                            qos: QoS = DEFAULT_QOS, raw: bool = False) -> _Subscription:
         cls = message_class(type_name)
         name = self.resolve_topic(topic)
         reader = DataReader(self.middleware.participant, self.middleware.topic(name, cls), qos=_dds_qos(qos))
-        sub = _Subscription(self, reader, cls, name, callback)
+        sub = _Subscription(self, reader, cls, name, callback, raw)
         self.subscriptions.append(sub)
         self.middleware.watch(reader)
         self.middleware.announce()

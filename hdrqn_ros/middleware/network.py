@@ -91,6 +91,10 @@ def _write_once(name: str, text: str) -> str:
     return str(path)
 
 
+def _is_ours(path: str) -> bool:
+    return Path(path).resolve() == FASTDDS_LOOPBACK_PROFILE.resolve()
+
+
 def check_fastdds_profile(path: str, variable: str) -> None:
     """A :class:`ParameterError` naming ``path`` (from ``variable``) unless it is a readable XML
     file whose root is Fast DDS's ``<dds>`` or ``<profiles>``."""
@@ -118,7 +122,7 @@ def apply_rmw_network_defaults(interface: str | None, environ: os._Environ | dic
         environ["CYCLONEDDS_URI"] = cyclone_config(interface or LOOPBACK)
         return f"{rmw} on {interface or 'loopback only'}"
     for variable in FASTDDS_PROFILE_VARIABLES:
-        if environ.get(variable):
+        if environ.get(variable) and not _is_ours(environ[variable]):  # ours: inherited from `hdrqn up`, a test
             check_fastdds_profile(environ[variable], variable)
             if interface is None:
                 return f"{rmw} with the user's profile {environ[variable]}"

@@ -37,7 +37,8 @@ LATCHED_QOS = QoS(depth=1, transient_local=True)
 
 
 class Publisher(Protocol):
-    def publish(self, msg: Any) -> None: ...
+    def publish(self, msg: Any) -> None:
+        """Publish a message of the topic's type, or its CDR bytes (header first) as they are."""
 
     def get_subscription_count(self) -> int:
         """Subscriptions matched to this publisher (as rclpy's ``Publisher`` answers)."""
@@ -80,8 +81,10 @@ class Node(ABC):
 
     @abstractmethod
     def create_subscription(self, type_name: str, topic: str, callback: Callable[[Any], None],
-                            qos: QoS = DEFAULT_QOS) -> Any:
-        """``callback(msg)`` runs on the thread that spins the middleware."""
+                            qos: QoS = DEFAULT_QOS, raw: bool = False) -> Any:
+        """``callback(msg)`` runs on the thread that spins the middleware; with ``raw`` it gets
+        the sample's CDR bytes as received (header first, what a bag stores), undecoded.
+        Samples over ``max_message_bytes`` are dropped either way."""
 
     @abstractmethod
     def create_timer(self, period_s: float, callback: Callable[[], None]) -> Any:

@@ -156,7 +156,7 @@ class RclpyNode(Node):
         return self._node.create_publisher(self.msg(type_name), topic, _qos_profile(qos))
 
     def create_subscription(self, type_name: str, topic: str, callback: Callable[[Any], None],
-                            qos: QoS = DEFAULT_QOS) -> Any:
+                            qos: QoS = DEFAULT_QOS, raw: bool = False) -> Any:
         """Takes the serialized sample, so that an oversized one (over ``max_message_bytes``) is
         dropped before decoding and one that does not decode is dropped too, each with a
         throttled warning, as on the Cyclone backend."""
@@ -167,6 +167,9 @@ class RclpyNode(Node):
         def on_sample(data: bytes) -> None:
             if len(data) > limit:
                 dropped.warn(f"{len(data)} B exceeds the {limit} B message limit")
+                return
+            if raw:
+                callback(data)
                 return
             try:
                 msg = deserialize_message(data, cls)

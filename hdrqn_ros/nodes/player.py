@@ -53,6 +53,12 @@ def _merge(a: TopicInfo | None, b: TopicInfo) -> TopicInfo:
                      both(a.depth, b.depth, max))
 
 
+def on_wire(cdr: bytes) -> bytes:
+    """A bag's CDR bytes as published: zero-padded to a multiple of 4 bytes, as DDS sends a
+    serialized payload (else the DDS implementation pads with whatever its buffer held)."""
+    return bytes(cdr) + b"\0" * (-len(cdr) % 4)
+
+
 def playback_qos(info: TopicInfo) -> QoS:
     """The QoS to publish a recorded topic with (:data:`DEFAULT_QOS` for what is unknown)."""
     return QoS(depth=info.depth or DEFAULT_QOS.depth,
@@ -176,13 +182,13 @@ class PlayerNode:
             if start_wall is None:
                 start_ns, start_wall = t, time.monotonic()
             try:
-                msg = self.node.from_cdr(type_name, data)
+                self.node.from_cdr(type_name, data)  # it must decode; the recorded bytes go out as they are
             except Exception as exc:
                 raise BagError(f"{bag}: the message on {topic} at {t} ns does not decode as {type_name} "
                                f"({type(exc).__name__}: {exc})") from None
             if not self._wait_until(t, start_ns, start_wall):
                 return 0
-            self.publishers[topic].publish(msg)
+            self.publishers[topic].publish(on_wire(data))
             self.published += 1
             self.bag_time_ns = t
             count += 1

@@ -23,7 +23,7 @@ def share_dir() -> Path:
 
     try:
         return Path(get_package_share_directory(PACKAGE))
-    except PackageNotFoundError:
+    except (PackageNotFoundError, OSError):  # OSError: no AMENT_PREFIX_PATH (no sourced workspace)
         return Path(__file__).resolve().parents[1]
 
 

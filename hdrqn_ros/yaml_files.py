@@ -7,13 +7,22 @@ from pathlib import Path
 import yaml
 
 
+class _Loader(yaml.SafeLoader):
+    """Safe loading, plus ``!!python/tuple`` read as a plain list: launch_ros writes list
+    parameters that way into the params files it passes to nodes, and rcl reads them as
+    sequences. Nothing else of Python's tags is accepted."""
+
+
+_Loader.add_constructor("tag:yaml.org,2002:python/tuple", lambda loader, node: loader.construct_sequence(node))
+
+
 def safe_load(text: str):
-    """``yaml.safe_load(text)``, raising only :class:`yaml.YAMLError`: PyYAML's constructors
+    """``yaml.safe_load(text)`` (and ``!!python/tuple`` as a list), raising only :class:`yaml.YAMLError`: PyYAML's constructors
     also raise ValueError (``2001-13-01``, ``!!int x``), KeyError (``!!bool maybe``),
     AttributeError (``!!timestamp x``), IndexError (``a: !!int``) and, for deep nesting,
     RecursionError."""
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=_Loader)
     except yaml.YAMLError:
         raise
     except RecursionError:

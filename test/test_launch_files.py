@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from hdrqn_ros.agents.algorithms import ALGO_SPECS
+from hdrqn_ros.middleware.port import ParameterError
 from hdrqn_ros.middleware.ros_args import load_params_file
 from hdrqn_ros.nodes import environment, learner, nav
 from hdrqn_ros.nodes.common import ENV_DEFAULTS
@@ -128,6 +129,21 @@ def test_launch_constants_match_the_code():
     assert set(launch_support.ALGOS) == set(ALGO_SPECS)
     assert set(launch_support.HIERARCHICAL_ALGOS) == {a for a, s in ALGO_SPECS.items() if s.hierarchical}
     assert launch_support.DEFAULT_ALGO == ENV_DEFAULTS["algo"]
+
+
+def test_params_file_as_launch_ros_writes_it_loads(tmp_path):
+    """launch_ros dumps a Node's dict parameters with ``yaml.dump``, so lists become
+    ``!!python/tuple`` (rcl reads them as sequences); our parser must too, and still refuse
+    every other Python tag."""
+    import yaml
+
+    path = tmp_path / "launch_params_x"
+    path.write_text(yaml.dump({"/learner": {"ros__parameters": {"groups": ("/group0", "/group1"), "resume": True}}}))
+    assert "!!python/tuple" in path.read_text()
+    assert ("/learner", "groups", ["/group0", "/group1"]) in load_params_file(path)
+    path.write_text("/learner:\n  ros__parameters:\n    x: !!python/object/apply:os.getcwd []\n")
+    with pytest.raises(ParameterError, match="not valid YAML"):
+        load_params_file(path)
 
 
 # -- with ROS 2 (skipped where launch / launch_ros are not installed) --------------------------------

@@ -295,14 +295,17 @@ def cmd_up(args) -> int:
     import yaml
 
     from hdrqn_ros.graph import graph_processes, write_params
-    from hdrqn_ros.middleware import BACKEND_ENV, BackendError, chosen_backend
+    from hdrqn_ros.middleware import BACKEND_ENV, BackendError, ParameterError, chosen_backend
+    from hdrqn_ros.middleware.network import check_user_fastdds_profile
     from hdrqn_ros.supervisor import Supervisor
     from hdrqn_ros.training.plots import plot_runs
 
     run_dir = Path(args.out)
     try:
         backend = chosen_backend(args.middleware)
-    except BackendError as exc:
+        if backend == "rclpy" and not args.interface:
+            check_user_fastdds_profile()
+    except (BackendError, ParameterError) as exc:
         raise UsageError(str(exc)) from None
     if not 1 <= args.groups <= MAX_GROUPS:
         raise UsageError(f"--groups must be in 1..{MAX_GROUPS} (4 node processes each), got {args.groups}")

@@ -109,6 +109,14 @@ def check_fastdds_profile(path: str, variable: str) -> None:
                              "not <dds> or <profiles>")
 
 
+def check_user_fastdds_profile(environ: os._Environ | dict = os.environ) -> None:
+    """A :class:`ParameterError` naming the file if a Fast DDS profile the user set (not ours)
+    does not exist or does not parse: what each rclpy node would exit with, asked up front."""
+    for variable in FASTDDS_PROFILE_VARIABLES:
+        if environ.get(variable) and not _is_ours(environ[variable]):
+            check_fastdds_profile(environ[variable], variable)
+
+
 def apply_rmw_network_defaults(interface: str | None, environ: os._Environ | dict = os.environ) -> str:
     """Before ``rclpy.init``: point the RMW at our network defaults unless the user configured
     their own; returns a one-line description of what the RMW will use.

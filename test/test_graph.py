@@ -246,7 +246,13 @@ def check_recordings(tmp_path: Path, learner_bag: Path, ros2_bag: Path) -> None:
 @pytest.mark.parametrize("algo", ["hdrqn-v1", "dqn"])
 def test_other_algorithms_train_aligned(domain, backend, tmp_path, algo):
     """Image-input meta-controller (hDRQNv1) and a flat agent (no critic, no meta)."""
-    sup = start_graph(tmp_path, algo=algo, episodes=5)
+    assert train_to_the_end_aligned(tmp_path, algo=algo)["updates"] > 0
+
+
+def train_to_the_end_aligned(tmp_path: Path, episodes: int = 5, **graph) -> dict:
+    """Run ``start_graph(tmp_path, episodes=episodes, **graph)`` until the learner finishes,
+    check every transition against the environment's log; the learner's summary."""
+    sup = start_graph(tmp_path, episodes=episodes, **graph)
     try:
         wait_for(lambda: (tmp_path / "run" / "summary.json").exists(), 150, "the learner to finish", sup)
     finally:
@@ -254,7 +260,7 @@ def test_other_algorithms_train_aligned(domain, backend, tmp_path, algo):
     env_rows, transitions = read_jsonl(tmp_path / "env_steps.jsonl"), read_jsonl(tmp_path / "transitions.jsonl")
     check_env_log_replays_in_process(env_rows)
     check_transitions_match_env(transitions, env_rows)
-    assert json.loads((tmp_path / "run" / "summary.json").read_text())["updates"] > 0
+    return json.loads((tmp_path / "run" / "summary.json").read_text())
 
 
 def test_learner_killed_and_restarted_resumes_aligned(domain, backend, tmp_path):
@@ -422,15 +428,7 @@ def test_mixed_graph_trains_aligned(domain, tmp_path, cyclone_nodes):
     and every transition the learner assembled is the environment's step."""
     nodes = ("environment", "critic", "meta_controller", "sub_controller", "learner")
     middleware = {n: "cyclone" if n in cyclone_nodes else "rclpy" for n in nodes}
-    sup = start_graph(tmp_path, episodes=5, middleware=middleware)
-    try:
-        wait_for(lambda: (tmp_path / "run" / "summary.json").exists(), 150, "the learner to finish", sup)
-    finally:
-        sup.stop()
-    env_rows, transitions = read_jsonl(tmp_path / "env_steps.jsonl"), read_jsonl(tmp_path / "transitions.jsonl")
-    check_env_log_replays_in_process(env_rows)
-    check_transitions_match_env(transitions, env_rows)
-    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    summary = train_to_the_end_aligned(tmp_path, middleware=middleware)
     assert summary["episodes"] == 5 and summary["updates"] > 0
     for node, backend in middleware.items():  # each process really ran on its backend
         log = (tmp_path / "logs" / f"{'learner' if node == 'learner' else 'graph_' + node}.log").read_text()

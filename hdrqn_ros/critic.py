@@ -52,6 +52,22 @@ class InternalCritic:
         return CriticResult(intrinsic.astype(np.float32), reached, option_done)
 
 
+def sub_controller_terminal(reached: np.ndarray, terminated: np.ndarray, life_lost: np.ndarray,
+                            option_done: np.ndarray) -> np.ndarray:
+    """(N,) bool: the sub-controller's TD target does not bootstrap at this step.
+
+    An option ends with a terminal transition for the sub-controller when its subgoal is
+    reached, when the episode terminates, or when a life is lost and that ends the option
+    (Montezuma, thesis 4.5): the next frame is a death animation the option will not go on
+    from, so dying must cost the sub-controller the value it would have bootstrapped. An
+    option cut by the step limit (``truncated``, no life lost) still bootstraps. Only data
+    that both the in-process rollout and the node graph have go in (``option_done`` is the
+    critic's output, ``life_lost`` the environment's).
+    """
+    return (np.asarray(reached, bool) | np.asarray(terminated, bool)
+            | (np.asarray(life_lost, bool) & np.asarray(option_done, bool)))
+
+
 GRID_CRITIC = InternalCritic(1.0, -1.0, -1.0, life_loss_ends_option=False)
 """Eq. 4.1: +1 for the subgoal, -1 for another goal or an obstacle."""
 MONTEZUMA_CRITIC = InternalCritic(1.0, 0.0, 0.0, life_loss_ends_option=True)

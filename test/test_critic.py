@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hdrqn_ros.critic import GRID_CRITIC, MONTEZUMA_CRITIC, InternalCritic
+from hdrqn_ros.critic import GRID_CRITIC, MONTEZUMA_CRITIC, InternalCritic, sub_controller_terminal
 from hdrqn_ros.envs.domain import StepBatch
 from hdrqn_ros.envs.gridworld import GridWorldBatch, GridWorldEnv
 
@@ -43,6 +43,23 @@ def test_montezuma_critic_table():
     assert res.intrinsic.tolist() == [1.0, 0.0, 0.0, 0.0]
     assert res.reached.tolist() == [True, False, False, False]
     assert res.option_done.tolist() == [True, False, False, True]
+
+
+def test_sub_controller_terminal_table():
+    """No bootstrap for the sub-controller: subgoal reached, episode terminated, or a death
+    that ends the option (Montezuma); a step-limit cut or a plain step bootstraps."""
+    # rows: reached / nothing / death / death at the step limit / step limit / game over /
+    # reached while dying
+    step = make_step(at=[3, -1, -1, -1, -1, -1, 3], life=[0, 0, 1, 1, 0, 1, 1], trunc=[0, 0, 0, 1, 1, 0, 0],
+                     term=[0, 0, 0, 0, 0, 1, 0])
+    res = MONTEZUMA_CRITIC.evaluate(step, np.full(7, 3))
+    got = sub_controller_terminal(res.reached, step.terminated, step.life_lost, res.option_done)
+    assert got.tolist() == [True, False, True, True, False, True, True]
+    assert res.option_done.tolist() == [True, False, True, True, True, True, True]
+    # a critic whose options a life loss does not end: a life loss alone is not terminal
+    keep = InternalCritic(life_loss_ends_option=False).evaluate(step, np.full(7, 3))
+    assert sub_controller_terminal(keep.reached, step.terminated, step.life_lost,
+                                   keep.option_done)[[1, 2, 4]].tolist() == [False, False, False]
 
 
 def test_critic_shape_mismatch():

@@ -6,13 +6,19 @@ import sys
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 from gymnasium.utils.env_checker import check_env
 
 import hdrqn_ros  # noqa: F401  (registers the ids)
+from hdrqn_ros.config import build_config
 from hdrqn_ros.critic import MONTEZUMA_CRITIC
 from hdrqn_ros.envs import montezuma as mz
 from hdrqn_ros.envs.domain import NO_SUBGOAL, OBS_SHAPE
 from hdrqn_ros.envs.registration import make_batch
+from hdrqn_ros.recording.transitions import TransitionRecorder, read_episodes
+from hdrqn_ros.training.episodes import EpisodeRecorder
+from hdrqn_ros.training.rollout import Rollout
+from hdrqn_ros.training.trainer import build_agent
 
 ENV_ID = "hdrqn/MontezumaRevenge-v0"
 NOOP, FIRE, UP, RIGHT, LEFT, DOWN, RIGHTFIRE, LEFTFIRE = 0, 1, 2, 3, 4, 5, 11, 12
@@ -322,3 +328,75 @@ def test_missing_ale_py_says_what_to_install(monkeypatch):
     monkeypatch.setitem(sys.modules, "ale_py", None)
     with pytest.raises(ImportError, match="pip install ale-py"):
         mz.MontezumaBatch(1)
+
+
+class Scripted:
+    """Replaces a controller's ``act``: its network still runs (so the LSTM state is the
+    real one), but the Q-values are one-hot on the scripted choice, so a greedy rollout
+    follows the script. Keeps the state each call was given."""
+
+    def __init__(self, controller, choices):
+        self.act, self.choices, self.states_in = controller.act, iter(choices), []
+        controller.act = self
+
+    def __call__(self, x, state):
+        self.states_in.append(None if state is None else tuple(t.clone() for t in state))
+        q, new_state = self.act(x, state)
+        scripted = np.zeros_like(q)
+        scripted[:, next(self.choices)] = 1.0
+        return scripted, new_state
+
+
+def test_a_death_is_terminal_for_the_sub_controller_in_both_paths(tmp_path):
+    """Thesis 4.5: a life loss ends the option. The dying step's sub-controller transition
+    must not bootstrap (from the death animation, under the old subgoal), the next option
+    starts fresh, and the episode goes on. The in-process rollout's episode and the one the
+    node graph's assembler builds from the same messages (here via a bag) agree."""
+    torch.manual_seed(0)
+    steps = 40  # the episode is truncated at the step limit, 16 steps after the death
+    cfg = build_config([], algo="hdrqn-v2", env=ENV_ID, env_kwargs={"max_steps": steps})
+    agent = build_agent(cfg)
+    sub = Scripted(agent.sub, expand(FALL_ROUTE))
+    Scripted(agent.meta, [mz.KEY_SUBGOAL] * 5)  # an option the fall never reaches
+    batch = make_batch(ENV_ID, 1, **cfg.env_kwargs)
+    rollout = Rollout(batch, agent, seed=0, record_subgoal_images=True)
+    recorder = EpisodeRecorder(1, True, cfg.sub.gamma, cfg.meta.gamma)
+    sink = TransitionRecorder(tmp_path / "bag", cfg, 1)
+    records, finished, lives = [], [], []
+    rng = np.random.default_rng(0)
+    for _ in range(steps):
+        records.append(rollout.step(0.0, 0.0, rng))
+        lives.append(batch._ales[0].lives())  # ALE's own count (the last step resets the game)
+        sink.write(records[-1])
+        finished += recorder.add(records[-1])
+    sink.close()
+
+    death = 23  # down the middle ladder, carried off the conveyor's left end
+    assert [t for t, r in enumerate(records) if r.env.life_lost[0]] == [death]
+    assert lives[:death] == [6] * death and lives[death:-1] == [5] * (steps - 1 - death)
+    assert not any(r.env.done[0] for r in records[:-1]) and records[-1].env.truncated[0]
+    r = records[death]
+    assert r.option_done[0] and r.sub_terminal[0] and r.intrinsic[0] == 0 and not r.env.done[0]
+    # the next option starts fresh: a new subgoal decision and a zero sub-controller state
+    assert records[death + 1].new_option[0] and not records[death].new_option[0]
+    assert all(not t.any() for t in sub.states_in[death + 1])
+    assert all(t.abs().sum() > 0 for t in sub.states_in[death])
+
+    [(_, sub_ep, meta_ep, stats)] = finished
+    assert sub_ep.num_steps == steps and stats.options == 2
+    terminal = np.zeros(steps, bool)
+    terminal[death] = True  # the dying step, and nothing else (the truncated last step bootstraps)
+    np.testing.assert_array_equal(sub_ep.fields["terminal"], terminal)
+    np.testing.assert_array_equal(sub_ep.segment_starts, [0, death + 1])
+    np.testing.assert_array_equal(meta_ep.fields["terminal"], [False, False])  # the game goes on
+    np.testing.assert_array_equal(meta_ep.fields["action"], [mz.KEY_SUBGOAL] * 2)
+
+    # the node graph's path: the learner's assembler joins the per-step messages (env_step
+    # with life_lost, critic with option_done, ...) into the same episodes
+    [(_, graph_sub, graph_meta, _)] = list(read_episodes([sink.path], cfg, batch.num_subgoals))
+    np.testing.assert_array_equal(graph_sub.fields["terminal"], terminal)
+    for mine, theirs in ((sub_ep, graph_sub), (meta_ep, graph_meta)):
+        np.testing.assert_array_equal(mine.frames, theirs.frames)
+        np.testing.assert_array_equal(mine.segment_starts, theirs.segment_starts)
+        for k in mine.fields:
+            np.testing.assert_array_equal(mine.fields[k], theirs.fields[k], err_msg=k)

@@ -200,3 +200,45 @@ def test_uint8_input_handling():
     chw = trunk._prepare(img)
     assert chw.shape == (1, 3, 44, 44)
     assert chw[0, 2].min() == 1.0 and chw[0, :2].max() == 0.0
+
+
+@pytest.mark.parametrize("make, shape", [(lambda: make_image_qnet(6, 18), (44, 44, 6)),
+                                         (lambda: make_state_qnet(256, 7), (256,))], ids=["sub", "v2-meta"])
+def test_unrolled_lstm_equals_torch_nn_lstm(make, shape):
+    """The hand-unrolled LSTM of ``act`` (batch 1, the acting path) and of ``forward`` are
+    ``nn.LSTM`` itself: same Q-values, h and c at every one of 20 steps, from a zero and
+    from a non-zero state (full-size networks: the sub-controller on Montezuma's 18
+    actions and the hDRQNv2 meta-controller)."""
+    torch.manual_seed(3)
+    net = make()
+    steps = 20
+    if len(shape) == 3:
+        x = images(1, steps, c=shape[-1], seed=4)[0]  # (20, 44, 44, 6) uint8
+    else:
+        x = torch.randn(steps, *shape) * 3
+    for init in (None, (torch.randn(1, 256) * 0.5, torch.randn(1, 256) * 0.5)):
+        with torch.no_grad():
+            feats = net.trunk(x)  # (20, 256)
+            h0, c0 = (torch.zeros(1, 256), torch.zeros(1, 256)) if init is None else init
+            out, (hn, cn) = net.lstm(feats[None], (h0[None], c0[None]))  # torch's own LSTM
+            ref_q = net.head(out[0])
+            # nn.LSTM one step at a time, for c after every step
+            ref_c, state = [], (h0[None], c0[None])
+            for t in range(steps):
+                _, state = net.lstm(feats[None, t:t + 1], state)
+                ref_c.append(state[1][0, 0])
+            q_act, h_act, c_act, st = [], [], [], init
+            for t in range(steps):
+                q, st = net.act(x[t:t + 1], st)
+                q_act.append(q[0])
+                h_act.append(st[0][0])
+                c_act.append(st[1][0])
+            q_fwd, (h_fwd, c_fwd) = net(x[None], init)
+        tol = dict(atol=1e-5, rtol=0)
+        torch.testing.assert_close(torch.stack(q_act), ref_q, **tol)
+        torch.testing.assert_close(torch.stack(h_act), out[0], **tol)
+        torch.testing.assert_close(torch.stack(c_act), torch.stack(ref_c), **tol)
+        torch.testing.assert_close(torch.stack(ref_c)[-1], cn[0, 0], **tol)
+        torch.testing.assert_close(q_fwd[0], ref_q, **tol)
+        torch.testing.assert_close((h_fwd[0], c_fwd[0]), (hn[0, 0], cn[0, 0]), **tol)
+        assert ref_q.abs().max() > 1e-3 and cn.abs().max() > 1e-2  # not a trivial comparison

@@ -248,3 +248,70 @@ def test_first_step_of_each_segment_is_trained():
     steps must still carry the loss in windows that begin there."""
     counts = loss_counts([3], 2, 200)
     assert counts[0] > 0.2 * counts.sum() / 3
+
+
+class ScriptedStarts:
+    """A stand-in for ``np.random.Generator`` whose draws are given: first the episodes of
+    the minibatch, then each window's start step."""
+
+    def __init__(self, episodes, starts):
+        self.episodes, self.starts = list(episodes), iter(starts)
+
+    def integers(self, high, size=None):
+        if size is not None:
+            assert len(self.episodes) == size and max(self.episodes) < high
+            return np.array(self.episodes)
+        s = next(self.starts)
+        assert s < high
+        return s
+
+
+def bits(rows):
+    return np.array([[c == "1" for c in row] for row in rows], bool)
+
+
+# Episode 0: options of 3, 10 and 6 steps (segments start at steps 0, 3, 13; T = 19).
+# Episode 1: one segment of 12 steps (a flat or meta episode). Window length n = 8: the
+# loss on the last n/2 = 4 valid steps, on every valid step when the window begins at
+# its segment's start; windows are cut at the end of their segment (option or episode).
+#          (episode, start,   valid,     loss)
+MASK_TABLE_N8 = [
+    (0, 0, "11100000", "11100000"),  # option 0 from its start: 3 steps, all trained
+    (0, 1, "11000000", "11000000"),  # cut at option 0's end: 2 steps (< n/2), all trained
+    (0, 2, "10000000", "10000000"),  # option 0's last step alone
+    (0, 3, "11111111", "11111111"),  # option 1 from its start: the zero state is the true one
+    (0, 4, "11111111", "00001111"),  # mid-option full window: the last 4
+    (0, 5, "11111111", "00001111"),  # ends exactly at option 1's last step (12)
+    (0, 7, "11111100", "00111100"),  # cut at option 1's end after 6 steps: the last 4 of those
+    (0, 10, "11100000", "11100000"),  # 3 steps before the boundary at 13
+    (0, 12, "10000000", "10000000"),  # option 1's last step alone
+    (0, 13, "11111100", "11111100"),  # option 2 from its start, cut at the episode's end
+    (0, 14, "11111000", "01111000"),
+    (0, 18, "10000000", "10000000"),  # the episode's last step
+    (1, 0, "11111111", "11111111"),
+    (1, 2, "11111111", "00001111"),
+    (1, 6, "11111100", "00111100"),  # cut at the episode's end
+    (1, 9, "11100000", "11100000"),
+]
+# Window length n = 2 (the meta-controller's n^M): the loss on the last step only, on both
+# when the window begins at its segment's start.
+MASK_TABLE_N2 = [
+    (0, 0, "11", "11"), (0, 1, "11", "01"), (0, 2, "10", "10"), (0, 3, "11", "11"),
+    (0, 11, "11", "01"), (0, 12, "10", "10"), (1, 0, "11", "11"), (1, 5, "11", "01"), (1, 11, "10", "10"),
+]
+
+
+@pytest.mark.parametrize("n, table", [(8, MASK_TABLE_N8), (2, MASK_TABLE_N2)], ids=["n8", "n2"])
+def test_loss_masks_match_the_written_table(n, table):
+    replay = EpisodeReplay(5, seed=0)
+    replay.add(make_episode(0, [3, 10, 6]))
+    replay.add(make_episode(1, [12]))
+    episodes, starts, valid, loss = zip(*table)
+    batch = replay.sample(len(table), n, rng=ScriptedStarts(episodes, starts))
+    np.testing.assert_array_equal(batch.start, starts)
+    np.testing.assert_array_equal(batch.valid, bits(valid))
+    np.testing.assert_array_equal(batch.loss_mask, bits(loss))
+    for i, (e, s, v, _) in enumerate(table):  # the window holds steps s, s+1, ... of episode e
+        w = v.count("1")
+        np.testing.assert_array_equal(batch.fields["step"][i, :w], np.arange(s, s + w))
+        assert (batch.frames[i, : w + 1, 0] == e).all()

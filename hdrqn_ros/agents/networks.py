@@ -206,7 +206,8 @@ class RecurrentQNetwork(nn.Module):
         The LSTM is unrolled with plain torch ops (input projections of all T steps in
         one matrix product, then T recurrent steps): for the short windows of the
         thesis (n <= 16) this trains faster on a CPU than ``nn.LSTM``'s oneDNN kernels,
-        and it is the same function (a test compares both).
+        and it is the same function (``test_unrolled_lstm_equals_torch_nn_lstm`` in
+        test/test_networks.py compares both, and ``act``'s batch-1 path, with ``nn.LSTM``).
         """
         x = _as_tensor(x)
         if x.dim() < 3:

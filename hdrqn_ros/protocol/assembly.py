@@ -17,6 +17,7 @@ import numpy as np
 from hdrqn_ros.agents.algorithms import ALGO_SPECS
 from hdrqn_ros.agents.networks import lstm_state_size
 from hdrqn_ros.config import TrainConfig, batch_class
+from hdrqn_ros.critic import sub_controller_terminal
 from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.protocol import wire as P
 from hdrqn_ros.protocol.follower import StepFollower, done
@@ -158,7 +159,7 @@ class TransitionAssembler(StepFollower):
             subgoal = self.option_subgoal
             intrinsic, reached, option_done = critic["intrinsic"], bool(critic["reached"]), bool(critic["option_done"])
             self.option_next = option_done
-            sub_terminal = reached or bool(step["terminated"])
+            sub_terminal = bool(sub_controller_terminal(reached, step["terminated"], step["life_lost"], option_done))
         else:
             subgoal, new_option = -1, step["t"] == 1
             intrinsic, option_done, sub_terminal = 0.0, done(step), bool(step["terminated"])

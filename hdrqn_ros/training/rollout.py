@@ -14,6 +14,7 @@ import torch
 
 from hdrqn_ros.agents.algorithms import Agent
 from hdrqn_ros.agents.networks import lstm_state_size
+from hdrqn_ros.critic import sub_controller_terminal
 from hdrqn_ros.envs.domain import NO_SUBGOAL, StepBatch
 
 
@@ -47,7 +48,7 @@ class StepRecord:
     env: StepBatch  # what the environments reported
     intrinsic: np.ndarray  # (N,) float32
     option_done: np.ndarray  # (N,) bool
-    sub_terminal: np.ndarray  # (N,) bool: no bootstrap for the sub-controller
+    sub_terminal: np.ndarray  # (N,) bool: no bootstrap for the sub-controller (see critic.sub_controller_terminal)
     option_extrinsic: np.ndarray  # (N,) float32: extrinsic summed over the option (at option end)
     option_steps: np.ndarray  # (N,) int: option length (at option end)
     meta_next_input: np.ndarray | None  # (N, ...) meta input after the option (at option end)
@@ -135,7 +136,7 @@ class Rollout:
         if self.agent.meta is not None:
             crit = self.critic.evaluate(env, self.subgoal)
             intrinsic, option_done = crit.intrinsic, crit.option_done
-            sub_terminal = crit.reached | env.terminated
+            sub_terminal = sub_controller_terminal(crit.reached, env.terminated, env.life_lost, option_done)
         else:
             intrinsic = np.zeros(self.n, np.float32)
             option_done = env.done.copy()

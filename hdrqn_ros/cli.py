@@ -173,6 +173,8 @@ def _add_bag(sub) -> None:
     play.add_argument("--no-clock", action="store_true", help="do not publish /clock")
     play.add_argument("--delay", type=float, default=1.0,
                       help="seconds between creating the publishers and the first message, for DDS discovery (default 1.0)")
+    play.add_argument("--wait-for-subscribers", type=int, default=0, metavar="N",
+                      help="before playing, wait until every topic has at least N subscribers (default 0: no wait)")
     play.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)")
     play.add_argument("--interface", help="network interface for DDS (default: loopback only)")
     play.add_argument("--middleware", choices=("auto", "rclpy", "cyclone"), default=None,
@@ -464,6 +466,8 @@ def _bag_play(args) -> int:
         raise UsageError(f"--rate must be > 0, got {args.rate}")
     if not (math.isfinite(args.delay) and args.delay >= 0):
         raise UsageError(f"--delay must be >= 0, got {args.delay}")
+    if args.wait_for_subscribers < 0:
+        raise UsageError(f"--wait-for-subscribers must be >= 0, got {args.wait_for_subscribers}")
     if args.domain_id is not None:
         if not 0 <= args.domain_id <= 232:
             raise UsageError(f"--domain-id must be in 0..232, got {args.domain_id}")
@@ -475,7 +479,8 @@ def _bag_play(args) -> int:
 
     ros = ["-p", f"bag:={json.dumps(args.bags)}", "-p", f"rate:={yaml_float(args.rate)}",
            "-p", f"loop:={str(args.loop).lower()}", "-p", f"topics:={json.dumps(args.topics or [''])}",
-           "-p", f"clock:={str(not args.no_clock).lower()}", "-p", f"delay:={yaml_float(args.delay)}"]
+           "-p", f"clock:={str(not args.no_clock).lower()}", "-p", f"delay:={yaml_float(args.delay)}",
+           "-p", f"wait_for_subscribers:={args.wait_for_subscribers}"]
     if args.interface:
         ros += ["-p", f"dds_interface:={json.dumps(args.interface)}"]
     try:

@@ -84,8 +84,10 @@ def recorded(bag: Path) -> dict[str, list[bytes]]:
 
 
 def start_play(tmp_path: Path, *args: str) -> tuple[subprocess.Popen, Path]:
+    """The player, waiting for the Receiver's subscription on each topic (a loaded machine may
+    take longer than ``--delay`` to match them), then the delay for the Receiver's side."""
     log = tmp_path / f"play{len(list(tmp_path.glob('play*.log')))}.log"
-    proc = subprocess.Popen([sys.executable, "-m", "hdrqn_ros.cli", "bag", "play", *args],
+    proc = subprocess.Popen([sys.executable, "-m", "hdrqn_ros.cli", "bag", "play", "--wait-for-subscribers", "1", *args],
                             stdout=subprocess.DEVNULL, stderr=log.open("w"))
     return proc, log
 
@@ -232,7 +234,8 @@ def test_bad_input_exits_2_naming_the_problem(domain, bags, tmp_path, capsys):
     meta.write_text(meta.read_text().replace(f"type: {FLOATS}", "type: foo_msgs/msg/Bar"))
     in_process = {  # the rest in this process: hdrqn bag play ..., then the node's own entry point
         (str(unknown),): "foo_msgs/msg/Bar", (str(bags / "main"), "--rate", "0"): "--rate",
-        (str(bags / "main"), "--delay", "-1"): "--delay", (str(bags / "main"), "--domain-id", "999"): "--domain-id",
+        (str(bags / "main"), "--delay", "-1"): "--delay",
+        (str(bags / "main"), "--wait-for-subscribers", "-1"): "--wait-for-subscribers", (str(bags / "main"), "--domain-id", "999"): "--domain-id",
         (str(bags / "main"), "--topics", "/nope"): "/nope"}
     for args, needle in in_process.items():
         assert main(["bag", "play", *args]) == 2, args

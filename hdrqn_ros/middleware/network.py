@@ -143,6 +143,8 @@ def apply_rmw_network_defaults(interface: str | None, environ: os._Environ | dic
     else:
         address = interface_address(interface)
         profile = _write_once(f"hdrqn-fastdds-{address}.xml", fastdds_interface_profile(address))
+        # an interface asked for wins over a LOCALHOST range inherited from a loopback-only parent
+        environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SUBNET"
         where = f"{interface} ({address})"
     for variable in FASTDDS_PROFILE_VARIABLES:
         environ[variable] = profile

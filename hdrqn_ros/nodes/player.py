@@ -27,13 +27,15 @@ from hdrqn_ros.nodes.common import NodeConfigError, run_node
 from hdrqn_ros.recording.bag import BagError, TopicInfo, bag_summary, bag_topics, read_messages
 
 PARAMETERS = {"bag": [""], "rate": 1.0, "loop": False, "topics": [""], "clock": True, "clock_hz": 100.0,
-              "delay": 1.0}
+              "delay": 1.0, "wait_for_subscribers": 0}
 """``bag``: bag directories, played together in timestamp order (empty items are ignored);
 ``rate``: bag seconds per wall-clock second (> 0); ``loop``: start over at the end, until
 stopped; ``topics``: recorded topic names to play (``[""]``: all); ``clock``: publish
 ``/clock`` in bag time; ``clock_hz``: at most this many generated ``/clock`` messages per
 wall-clock second; ``delay``: seconds to wait after creating the publishers, so that DDS
-discovery matches the subscribers before the first message."""
+discovery matches the subscribers before the first message; ``wait_for_subscribers``: first
+wait (without limit, until stopped) until every topic's publisher has at least this many
+matched subscriptions (0: do not wait), for a consumer that must get every message."""
 
 CLOCK_TOPIC = "/clock"
 CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
@@ -82,6 +84,8 @@ class PlayerNode:
             raise NodeConfigError(f"rate must be a number > 0, got {self.rate}")
         if not (math.isfinite(self.delay) and self.delay >= 0):
             raise NodeConfigError(f"delay must be >= 0 s, got {self.delay}")
+        if p["wait_for_subscribers"] < 0:
+            raise NodeConfigError(f"wait_for_subscribers must be >= 0, got {p['wait_for_subscribers']}")
         if p["clock"] and not (math.isfinite(p["clock_hz"]) and p["clock_hz"] > 0):
             raise NodeConfigError(f"clock_hz must be > 0, got {p['clock_hz']}")
 
@@ -142,6 +146,21 @@ class PlayerNode:
         self._thread.start()
 
     # -- the playing thread ----------------------------------------------------------------
+    def _wait_for_subscribers(self) -> bool:
+        """Wait until each publisher has ``wait_for_subscribers`` matched subscriptions; False if stopped."""
+        wanted = self.params["wait_for_subscribers"]
+        publishers = {**self.publishers, **({CLOCK_TOPIC: self.clock_pub} if self.clock_pub is not None else {})}
+        next_report = time.monotonic() + 5.0
+        while wanted > 0 and not self._stop.is_set():
+            missing = sorted(t for t, pub in publishers.items() if pub.get_subscription_count() < wanted)
+            if not missing:
+                return True
+            if time.monotonic() >= next_report:
+                self.node.logger.info("waiting for %d subscriber(s) on %s", wanted, ", ".join(missing))
+                next_report += 5.0
+            self._stop.wait(0.05)
+        return not self._stop.is_set()
+
     def _messages(self) -> Iterator[tuple[int, int, str, str, str, bytes]]:
         """(stamp, bag index, bag, topic, type, cdr) of all bags in stamp order."""
         topics = list(self.topics)
@@ -151,8 +170,10 @@ class PlayerNode:
 
     def _run(self) -> None:
         log = self.node.logger
-        wall0 = time.monotonic()
         try:
+            if not self._wait_for_subscribers():
+                return
+            wall0 = time.monotonic()
             if self._stop.wait(self.delay):
                 return
             while not self._stop.is_set():

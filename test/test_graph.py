@@ -184,11 +184,11 @@ def test_graph_trains_and_transitions_align(domain, backend, tmp_path):
     """Also: the Nav2 adapters publish a goal_pose per option and a cmd_vel per action; the
     learner records what it receives, and a ros2-bag-record-style recorder records the topics."""
     learner_bag, ros2_bag = tmp_path / "learner-bag", tmp_path / "ros2-bag"
-    sup = start_graph(tmp_path, episodes=8, learner={"record": str(learner_bag)})
     mw = probe_middleware(backend)
     goals, twists, subgoals = [], [], []
     writer = BagWriter(ros2_bag)
-    try:
+    sup = None
+    try:  # the recorder is up before the graph, as one starts `ros2 bag record` first
         node = mw.create_node("nav_probe")
         node.create_subscription(P.POSE_STAMPED, "/goal_pose", goals.append)
         node.create_subscription("geometry_msgs/msg/Twist", "/cmd_vel", twists.append)
@@ -196,6 +196,7 @@ def test_graph_trains_and_transitions_align(domain, backend, tmp_path):
                                                                                                np.int64)))
         record_like_ros2_bag(node, writer, {**{f"/{t}": ty for t, ty in GROUP_TOPICS.items()},
                                             "/clock": P.CLOCK_TYPE})
+        sup = start_graph(tmp_path, episodes=8, learner={"record": str(learner_bag)})
 
         def finished():
             mw.spin(timeout_s=0.05)
@@ -205,7 +206,8 @@ def test_graph_trains_and_transitions_align(domain, backend, tmp_path):
     finally:
         mw.shutdown()
         writer.close()
-        sup.stop()
+        if sup is not None:
+            sup.stop()
     check_recordings(tmp_path, learner_bag, ros2_bag)
     assert twists and goals and len(twists) > len(goals)
     assert {round(g.pose.position.x, 3) for g in goals} <= {1.0, 3.5}  # poses from config/nav2/subgoals.yaml

@@ -283,8 +283,8 @@ def test_actor_group_cut_off_and_restored_rejoins(domain, backend, hosts, tmp_pa
         watch.until(lambda st: transitions_of(st, a) >= cut + 20 and episodes_ended(tlog, a) > cut_episodes,
                     90, "group0 to rejoin: new transitions and a whole new episode after the restore")
         timeline.update(cut_s=restored_at - cut_at, rejoin_s=time.monotonic() - restored_at)
-        final = watch.poll()
-        assert final["updates"] > during["updates"] and transitions_of(final, b) > transitions_of(during, b)
+        final = watch.until(lambda st: st["updates"] > during["updates"] and transitions_of(st, b) >
+                            transitions_of(during, b), 60, "training on both groups after the restore")
     finally:
         stopping = time.monotonic()
         codes = sup.stop()

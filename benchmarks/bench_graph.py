@@ -1,14 +1,20 @@
-"""Node-graph speed: lock-step acting rate, and training throughput next to the in-process trainer.
+"""Node-graph speed on each middleware backend: lock-step acting rate, and training throughput
+next to the in-process trainer.
 
-Runs real node processes over Cyclone DDS on the loopback interface (its own domain id).
+Runs real node processes on the loopback interface (its own domain id), once per backend
+(rclpy on Fast DDS, and our Cyclone DDS backend; ``--backends``). The probe that counts
+``env_step`` messages is a Cyclone-backend node in this process for both.
 
 1. acting only: environment, critic, meta- and sub-controller (hDRQNv2, no learner);
-   env steps/s seen on ``env_step``. Target >= 500.
+   env steps/s seen on ``env_step``, with 1 and 2 groups. The backends take turns in
+   rounds A B B A ... (``--rounds`` per backend), so a machine's drifting load hits both
+   alike; the mean per backend is reported. Targets: >= 500 steps/s; rclpy >= 0.9x Cyclone.
 2. training: the whole graph (``hdrqn up``'s processes) with the thesis update ratio
    (one update of each controller every 5 env steps) vs the in-process ``Trainer``
    with the same config, both measured after warm-up. Target: graph >= 0.9x.
 
-Prints one JSON object. Usage: ``python benchmarks/bench_graph.py [--seconds 60]``.
+Prints one JSON object. Usage: ``python benchmarks/bench_graph.py [--seconds 60]
+[--rounds 2] [--backends rclpy,cyclone] [--no-training]``.
 """
 from __future__ import annotations
 
@@ -22,7 +28,9 @@ from pathlib import Path
 
 from hdrqn_ros.config import build_config
 from hdrqn_ros.graph import graph_processes, write_params
+from hdrqn_ros.middleware import BACKEND_ENV
 from hdrqn_ros.middleware.cyclone import CycloneMiddleware
+from hdrqn_ros.middleware.rclpy_backend import rclpy_available
 from hdrqn_ros.protocol import wire as P
 from hdrqn_ros.supervisor import ProcessSpec, Supervisor
 from hdrqn_ros.training.trainer import Trainer
@@ -38,8 +46,9 @@ def _node(module: str, *args: str) -> list[str]:
     return head + ["--ros-args", "-p", f"algo:={ALGO}", *args]
 
 
-def acting_rate(seconds: float, log_dir: Path, groups: int = 1) -> dict:
-    """Lock-step steps/s of env + critic + meta + sub per group (epsilon 0.1, no learner)."""
+def acting_rate(seconds: float, log_dir: Path, backend: str, groups: int = 1) -> float:
+    """Lock-step steps/s (all groups together) of env + critic + meta + sub per group
+    (epsilon 0.1, no learner), every node on ``backend``."""
     specs = []
     for i in range(groups):
         ns = ("-r", f"__ns:=/g{i}", "-p", f"seed:={i}")
@@ -47,7 +56,7 @@ def acting_rate(seconds: float, log_dir: Path, groups: int = 1) -> dict:
                   ProcessSpec(f"g{i}/critic", _node("hdrqn_ros.nodes.critic", *ns)),
                   ProcessSpec(f"g{i}/meta", _node("hdrqn_ros.nodes.controllers:main_meta", "-p", "epsilon:=0.1", *ns)),
                   ProcessSpec(f"g{i}/sub", _node("hdrqn_ros.nodes.controllers:main_sub", "-p", "epsilon:=0.1", *ns))]
-    sup = Supervisor(specs, log_dir=log_dir)
+    sup = Supervisor(specs, env={BACKEND_ENV: backend}, log_dir=log_dir)
     sup.start()
     mw = CycloneMiddleware([])
     steps: list[float] = []
@@ -62,7 +71,7 @@ def acting_rate(seconds: float, log_dir: Path, groups: int = 1) -> dict:
     finally:
         mw.shutdown()
         sup.stop()
-    return {f"acting_{groups}group_steps_per_s": round(rate, 1)}
+    return rate
 
 
 def _config(episodes: int, num_envs: int = 1):
@@ -70,14 +79,17 @@ def _config(episodes: int, num_envs: int = 1):
                         eval_every=0, checkpoint_every=10**6)
 
 
-def graph_training_rate(seconds: float, tmp: Path, groups: int = 1, learner: dict | None = None) -> dict:
+def graph_training_rate(seconds: float, tmp: Path, backend: str, groups: int = 1,
+                        learner: dict | None = None) -> dict:
+    """Env steps/s and updates/s of the whole graph on ``backend``, measured after 50 updates."""
     cfg = _config(100_000)
-    run = tmp / f"graph{groups}"
+    run = tmp / f"graph{groups}-{backend}"
     run.mkdir()
     cfg_file = run / "in.yaml"
     cfg_file.write_text(json.dumps(cfg.model_dump()))
     params = write_params(cfg, run, groups, cfg_file, extra={"learner": learner or {}})
-    sup = Supervisor(graph_processes(cfg, params, groups, respawn=False), log_dir=run / "logs")
+    sup = Supervisor(graph_processes(cfg, params, groups, respawn=False), env={BACKEND_ENV: backend},
+                     log_dir=run / "logs")
     sup.start()
     status = run / "status.json"
 
@@ -97,8 +109,10 @@ def graph_training_rate(seconds: float, tmp: Path, groups: int = 1, learner: dic
         s1, t1 = read(), time.perf_counter()
     finally:
         sup.stop()
-    rate = (s1["env_steps"] - s0["env_steps"]) / (t1 - t0)
-    return {"graph_steps_per_s": round(rate, 1), "graph_updates_per_s": round((s1["updates"] - s0["updates"]) / (t1 - t0), 1)}
+    if not (s0 and s1):
+        raise RuntimeError(f"the {backend} graph wrote no status in 180 s (logs: {run / 'logs'})")
+    return {"steps_per_s": round((s1["env_steps"] - s0["env_steps"]) / (t1 - t0), 1),
+            "updates_per_s": round((s1["updates"] - s0["updates"]) / (t1 - t0), 1)}
 
 
 def inprocess_training_rate(seconds: float, tmp: Path, num_envs: int) -> float:
@@ -111,24 +125,61 @@ def inprocess_training_rate(seconds: float, tmp: Path, num_envs: int) -> float:
     return (trainer.env_steps - s0) / (time.perf_counter() - t0)
 
 
+def _rounds(backends: list[str], rounds: int) -> list[str]:
+    """A B B A A B ...: each backend ``rounds`` times, alternating which goes first."""
+    order: list[str] = []
+    for r in range(rounds):
+        order += backends if r % 2 == 0 else backends[::-1]
+    return order
+
+
+def _mean(values: list[float]) -> float:
+    return round(sum(values) / len(values), 1)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--seconds", type=float, default=60.0, help="training measurement per backend (acting: at most 20)")
+    ap.add_argument("--rounds", type=int, default=2, help="acting measurements per backend and group count")
+    ap.add_argument("--backends", default=None, help="comma-separated, of rclpy and cyclone (default: those installed)")
+    ap.add_argument("--no-training", action="store_true", help="acting only")
     args = ap.parse_args()
+    backends = args.backends.split(",") if args.backends else ["rclpy", "cyclone"] if rclpy_available() else ["cyclone"]
+    if not set(backends) <= {"rclpy", "cyclone"} or args.rounds < 1:
+        ap.error(f"--backends must name rclpy and/or cyclone (got {args.backends!r}), --rounds >= 1")
+    if "rclpy" in backends and not rclpy_available():
+        ap.error("--backends rclpy: rclpy does not import here (pip install '.[ros]')")
     os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        out = {"machine_cores": os.cpu_count(), "seconds": args.seconds}
+        out: dict = {"machine_cores": os.cpu_count(), "seconds": args.seconds, "backends": backends}
         for groups in (1, 2):
-            out.update(acting_rate(min(args.seconds, 20.0), tmp / f"acting{groups}", groups))
+            samples: dict[str, list[float]] = {b: [] for b in backends}
+            for k, backend in enumerate(_rounds(backends, args.rounds)):
+                samples[backend].append(acting_rate(min(args.seconds, 20.0), tmp / f"acting{groups}-{k}", backend, groups))
+                print(f"acting, {groups} group(s), {backend}: {samples[backend][-1]:.1f} steps/s", file=sys.stderr)
+            out[f"acting_{groups}group_steps_per_s"] = {b: _mean(v) for b, v in samples.items()}
+            out[f"acting_{groups}group_rounds"] = {b: [round(x, 1) for x in v] for b, v in samples.items()}
         out["acting_target"] = 500
-        out["acting_ratio"] = round(max(out["acting_1group_steps_per_s"], out["acting_2group_steps_per_s"]) / 500, 2)
-        out.update(graph_training_rate(args.seconds, tmp))
-        for n in (1, 16):
-            out[f"inprocess_n{n}_steps_per_s"] = round(inprocess_training_rate(args.seconds, tmp, n), 1)
-        best = max(out["inprocess_n1_steps_per_s"], out["inprocess_n16_steps_per_s"])
-        out["graph_vs_inprocess_best"] = round(out["graph_steps_per_s"] / best, 2)
-        out["training_target"] = 0.9
+        best = max(max(out[f"acting_{g}group_steps_per_s"].values()) for g in (1, 2))
+        out["acting_ratio"] = round(best / 500, 2)
+        if len(backends) == 2:
+            for g in (1, 2):
+                rate = out[f"acting_{g}group_steps_per_s"]
+                out[f"rclpy_vs_cyclone_acting_{g}group"] = round(rate["rclpy"] / rate["cyclone"], 2)
+            out["rclpy_vs_cyclone_target"] = 0.9
+        if not args.no_training:
+            graph = {b: graph_training_rate(args.seconds, tmp, b) for b in backends}
+            out["graph_steps_per_s"] = {b: g["steps_per_s"] for b, g in graph.items()}
+            out["graph_updates_per_s"] = {b: g["updates_per_s"] for b, g in graph.items()}
+            for n in (1, 16):
+                out[f"inprocess_n{n}_steps_per_s"] = round(inprocess_training_rate(args.seconds, tmp, n), 1)
+            inproc = max(out["inprocess_n1_steps_per_s"], out["inprocess_n16_steps_per_s"])
+            out["graph_vs_inprocess_best"] = {b: round(r / inproc, 2) for b, r in out["graph_steps_per_s"].items()}
+            out["training_target"] = 0.9
+            if len(backends) == 2:
+                out["rclpy_vs_cyclone_training"] = round(out["graph_steps_per_s"]["rclpy"]
+                                                         / out["graph_steps_per_s"]["cyclone"], 2)
     print(json.dumps(out, indent=2))
 
 

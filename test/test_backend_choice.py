@@ -69,7 +69,7 @@ def test_network_defaults_of_the_rmw():
     env: dict = {}
     assert apply_rmw_network_defaults(None, env) == "rmw_fastrtps_cpp on loopback only"
     assert env["FASTRTPS_DEFAULT_PROFILES_FILE"] == str(FASTDDS_LOOPBACK_PROFILE)
-    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SYSTEM_DEFAULT"
     assert apply_rmw_network_defaults(None, env) == "rmw_fastrtps_cpp on loopback only", "ours, inherited"
     own = {"FASTRTPS_DEFAULT_PROFILES_FILE": str(FASTDDS_LOOPBACK_PROFILE.parent / "port.py")}
     with pytest.raises(ParameterError, match="not valid XML"):

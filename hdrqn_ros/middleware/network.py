@@ -3,13 +3,16 @@
 * Cyclone DDS (our Cyclone backend, or ``rmw_cyclonedds_cpp`` under rclpy): the XML of
   :func:`cyclone_config`, given to the domain (``CYCLONEDDS_URI`` for the RMW).
 * Fast DDS (``rmw_fastrtps_cpp``, the RMW of the PyPI rclpy wheels): a profile given by
-  ``FASTRTPS_DEFAULT_PROFILES_FILE`` plus ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``. Out
-  of the box Fast DDS discovers by multicast on every interface; with
+  ``FASTRTPS_DEFAULT_PROFILES_FILE`` plus ``ROS_AUTOMATIC_DISCOVERY_RANGE=SYSTEM_DEFAULT``.
+  Out of the box Fast DDS discovers by multicast on every interface; with
   :data:`FASTDDS_LOOPBACK_PROFILE` (UDPv4 transport white-listed to 127.0.0.1, no built-in
   transports, unicast discovery to 127.0.0.1 on 60 participant ports) every datagram goes
   to 127.0.0.1 (traced: ``test/test_loopback.py``), and it meets the Cyclone backend's
-  nodes. Neither setting alone does both: the range alone does not meet Cyclone, the
-  profile alone still announces to the multicast group.
+  nodes. The range decides what rmw_fastrtps adds to the profile: ``SYSTEM_DEFAULT`` adds
+  nothing; ``SUBNET`` (rclpy's default) adds the SPDP multicast announcements (to
+  239.255.0.1, on ``lo``); ``LOCALHOST`` adds a second loopback transport, so every sample
+  is sent twice (traced here: 1532 datagrams for 200 messages against 748). The range
+  alone (``LOCALHOST`` without the profile) does not meet Cyclone.
 
 A user's own ``CYCLONEDDS_URI`` or Fast DDS profile always wins; a configured interface
 (``dds_interface`` / ``HDRQN_DDS_INTERFACE``) replaces loopback by that interface, with
@@ -136,14 +139,13 @@ def apply_rmw_network_defaults(interface: str | None, environ: os._Environ | dic
                 return f"{rmw} with the user's profile {environ[variable]}"
     if interface in (None, LOOPBACK):
         profile = str(FASTDDS_LOOPBACK_PROFILE)
-        # the profile alone still sends SPDP announcements to the multicast group too (on lo);
-        # rmw_fastrtps's LOCALHOST range on top of it makes every datagram unicast to 127.0.0.1
-        environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        # the profile exactly as written: SUBNET would add multicast SPDP, LOCALHOST a duplicate transport
+        environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "SYSTEM_DEFAULT")
         where = "loopback only"
     else:
         address = interface_address(interface)
         profile = _write_once(f"hdrqn-fastdds-{address}.xml", fastdds_interface_profile(address))
-        # an interface asked for wins over a LOCALHOST range inherited from a loopback-only parent
+        # an interface asked for wins over a range inherited from a loopback-only parent
         environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "SUBNET"
         where = f"{interface} ({address})"
     for variable in FASTDDS_PROFILE_VARIABLES:

@@ -220,8 +220,23 @@ class RclpyNode(Node):
         self._node.destroy_node()
 
 
+def _executor(context: Context) -> Any:
+    """rclpy's C++ ``EventsExecutor`` (about 10 us per callback here, against about 90 us for
+    ``SingleThreadedExecutor``, which rebuilds its Python wait set on every spin). The events
+    executor enables :mod:`faulthandler` on ``sys.stderr``; where stderr has no file descriptor
+    (a node inside a process whose stderr is captured in memory) or rclpy has no events
+    executor, the single-threaded one is used. Both run one callback at a time; both let a
+    callback's exception leave :meth:`RclpyMiddleware.spin`."""
+    try:
+        from rclpy.experimental import EventsExecutor
+        sys.stderr.fileno()
+    except (ImportError, AttributeError, ValueError, OSError):
+        return SingleThreadedExecutor(context=context)
+    return EventsExecutor(context=context)
+
+
 class RclpyMiddleware(Middleware):
-    """A private rclpy context initialised from ``argv`` plus a single-threaded executor."""
+    """A private rclpy context initialised from ``argv`` plus one executor for its nodes."""
 
     backend = "rclpy"
 
@@ -241,7 +256,7 @@ class RclpyMiddleware(Middleware):
                        signal_handler_options=SignalHandlerOptions.NO)
         except RuntimeError as exc:  # rcl's RCLError / UnknownROSArgsError
             raise RosArgsError(f"rclpy.init rejected the ROS arguments: {exc}") from None
-        self._executor = SingleThreadedExecutor(context=self._context)
+        self._executor = _executor(self._context)
         self._nodes: list[RclpyNode] = []
         self._closed = False
 

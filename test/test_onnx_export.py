@@ -28,6 +28,16 @@ TOL = 1e-5
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread():
+    """Acting as the nodes act (``ActingNetwork``: 1 thread); batch-1 convs on a loaded
+    2-core machine are ~20x slower with more threads."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
 def _make_checkpoint(path: Path, algo: str, env: str, seed: int) -> None:
     """A checkpoint written by the package's own save function, of an agent whose every
     parameter (biases too: they start at zero) is moved off its initial value."""
@@ -241,7 +251,7 @@ def test_export_refuses_a_missing_checkpoint(tmp_path):
 def test_onnx_acts_as_torch_over_whole_episodes(exported, algo):
     ckpt, policy_dir = exported[algo]
     policy = OnnxPolicy.load(policy_dir)
-    run = _play(ckpt, policy, episodes=3, seed=5)
+    run = _play(ckpt, policy, episodes=4, seed=5)
     assert run["steps"] >= 30 and run["sub"].decisions == run["steps"]
     assert run["sub"].max_err <= TOL
     if ALGO_SPECS[algo].hierarchical:

@@ -16,6 +16,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "hdrqn_ros"
 
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("base", ("hdrqn_ros.throttle", "hdrqn_ros.yaml_files")),
+    ("torch-free policy", ("hdrqn_ros.deploy",)),
     ("envs and critic", ("hdrqn_ros.envs", "hdrqn_ros.critic", "hdrqn_ros.__init__")),
     ("config", ("hdrqn_ros.config",)),
     ("agents", ("hdrqn_ros.agents",)),
@@ -31,7 +32,8 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
 """Lowest first. A module may import from its own layer and the layers below. The port
 (``Node``/``Publisher``/``QoS``, array helpers: an interface, no DDS) sits below the protocol,
 which builds its messages through a port ``Node``; the backends that implement the port sit
-above recording. ``hdrqn_ros/__init__.py`` only registers the gymnasium ids."""
+above recording. ``hdrqn_ros/__init__.py`` only registers the gymnasium ids. The torch-free
+policy (``deploy``: numpy and onnxruntime) stands on nothing of the package."""
 
 CORE_TOP = "recording"
 """This layer and those below import no ROS or DDS library (:data:`MIDDLEWARE_LIBRARIES`)."""

@@ -35,8 +35,8 @@ from cyclonedds.util import duration
 from hdrqn_ros.middleware.messages import DecodeError, decode, message_class
 from hdrqn_ros.middleware.network import LOOPBACK, cyclone_config
 from hdrqn_ros.middleware.port import DEFAULT_QOS, Middleware, Node, QoS
-from hdrqn_ros.middleware.ros_args import (check_overrides, check_parameter_type, process_settings, remap_and_resolve,
-                                           split_ros_args)
+from hdrqn_ros.middleware.ros_args import (check_overrides, check_parameter_type, process_settings,
+                                           remap_and_resolve, split_ros_args)
 from hdrqn_ros.throttle import Throttle
 
 MAX_TAKE = 64

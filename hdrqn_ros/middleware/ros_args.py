@@ -198,8 +198,9 @@ def check_parameter_type(node: str, name: str, default: Any, value: Any) -> Any:
 
 
 def check_overrides(node: str, defaults: dict[str, Any], overrides: dict[str, Any] | None) -> dict[str, Any]:
-    """``overrides`` (parameter values given in Python, see :meth:`~hdrqn_ros.middleware.port.Node.declare_parameters`)
-    type-checked against ``defaults``; a :class:`ParameterError` for a name without a default."""
+    """``overrides`` (parameter values given in Python, see
+    :meth:`~hdrqn_ros.middleware.port.Node.declare_parameters`) type-checked against
+    ``defaults``; a :class:`ParameterError` for a name without a default."""
     if not overrides:
         return {}
     if unknown := sorted(set(overrides) - set(defaults)):

@@ -35,8 +35,8 @@ from cyclonedds.util import duration
 from hdrqn_ros.middleware.messages import DecodeError, decode, message_class
 from hdrqn_ros.middleware.network import LOOPBACK, cyclone_config
 from hdrqn_ros.middleware.port import DEFAULT_QOS, Middleware, Node, QoS
-from hdrqn_ros.middleware.ros_args import (check_parameter_type, process_settings, remap_and_resolve,
-                                           split_ros_args)
+from hdrqn_ros.middleware.ros_args import (check_overrides, check_parameter_type, process_settings,
+                                           remap_and_resolve, split_ros_args)
 from hdrqn_ros.throttle import Throttle
 
 MAX_TAKE = 64
@@ -174,10 +174,12 @@ class CycloneNode(Node):
         self.middleware.wake()
         return timer
 
-    def declare_parameters(self, defaults: dict[str, Any]) -> dict[str, Any]:
-        overrides = self.middleware.ros_args.parameters_for(self.name, self.namespace)
+    def declare_parameters(self, defaults: dict[str, Any],
+                           overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+        given = {**self.middleware.ros_args.parameters_for(self.name, self.namespace),
+                 **check_overrides(self.fully_qualified_name, defaults, overrides)}
         for name, default in defaults.items():
-            value = overrides.get(name, default)
+            value = given.get(name, default)
             self.parameters[name] = check_parameter_type(self.fully_qualified_name, name, default, value)
         return {name: self.parameters[name] for name in defaults}
 

@@ -91,10 +91,13 @@ class Node(ABC):
         """``callback()`` every ``period_s`` seconds (wall time) on the spinning thread."""
 
     @abstractmethod
-    def declare_parameters(self, defaults: dict[str, Any]) -> dict[str, Any]:
+    def declare_parameters(self, defaults: dict[str, Any],
+                           overrides: dict[str, Any] | None = None) -> dict[str, Any]:
         """Declare parameters with their defaults; returns their values after overrides
-        from ``--ros-args -p name:=value`` and ``--params-file``. A value whose type differs
-        from the default's raises :class:`ParameterError`."""
+        from ``--ros-args -p name:=value`` and ``--params-file``, then from ``overrides``
+        (values given in Python by code that builds the node in-process; they win, like
+        rclpy's ``Node(parameter_overrides=...)``). A value whose type differs from the
+        default's, or an override without a default, raises :class:`ParameterError`."""
 
     @property
     @abstractmethod

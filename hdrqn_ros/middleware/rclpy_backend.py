@@ -26,6 +26,7 @@ try:
     from rclpy.context import Context
     from rclpy.exceptions import InvalidParameterTypeException
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.parameter import Parameter
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from rclpy.serialization import deserialize_message, serialize_message
     from rclpy.signals import SignalHandlerOptions
@@ -38,7 +39,7 @@ import numpy as np
 
 from hdrqn_ros.middleware.network import apply_rmw_network_defaults
 from hdrqn_ros.middleware.port import DEFAULT_QOS, Middleware, Node, ParameterError, Publisher, QoS, RosArgsError
-from hdrqn_ros.middleware.ros_args import ProcessSettings, process_settings, split_ros_args
+from hdrqn_ros.middleware.ros_args import ProcessSettings, check_overrides, process_settings, split_ros_args
 from hdrqn_ros.throttle import Throttle
 
 _SPIN_STEP_S = 0.05
@@ -186,19 +187,29 @@ class RclpyNode(Node):
             raise ValueError(f"timer period must be > 0 s, got {period_s}")
         return self._node.create_timer(period_s, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
-    def declare_parameters(self, defaults: dict[str, Any]) -> dict[str, Any]:
+    def declare_parameters(self, defaults: dict[str, Any],
+                           overrides: dict[str, Any] | None = None) -> dict[str, Any]:
         """Declare each parameter (already declared ones such as ``use_sim_time`` are read, not
-        redeclared); a type mismatch with the default raises :class:`ParameterError`."""
+        redeclared), then set those in ``overrides``; a type mismatch with the default raises
+        :class:`ParameterError`."""
+        given = check_overrides(self.fully_qualified_name, defaults, overrides)
         values: dict[str, Any] = {}
         for name, default in defaults.items():
             if self._node.has_parameter(name):
                 values[name] = self._node.get_parameter(name).value
-                continue
-            try:
-                values[name] = self._node.declare_parameter(name, default).value
-            except InvalidParameterTypeException as exc:
-                raise ParameterError(f"node {self.fully_qualified_name}: parameter {name!r} must be "
-                                     f"{type(default).__name__} (default {default!r}): {exc}") from None
+            else:
+                try:
+                    values[name] = self._node.declare_parameter(name, default).value
+                except InvalidParameterTypeException as exc:
+                    raise ParameterError(f"node {self.fully_qualified_name}: parameter {name!r} must be "
+                                         f"{type(default).__name__} (default {default!r}): {exc}") from None
+            if name in given:  # typed as declared (an empty list would otherwise be a byte array)
+                declared = self._node.get_parameter(name).type_
+                result = self._node.set_parameters([Parameter(name, declared, given[name])])[0]
+                if not result.successful:
+                    raise ParameterError(f"node {self.fully_qualified_name}: parameter {name!r} cannot be set to "
+                                         f"{given[name]!r}: {result.reason}")
+                values[name] = self._node.get_parameter(name).value
         return values
 
     @property

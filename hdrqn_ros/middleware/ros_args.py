@@ -197,8 +197,23 @@ def check_parameter_type(node: str, name: str, default: Any, value: Any) -> Any:
     return value
 
 
+def check_overrides(node: str, defaults: dict[str, Any], overrides: dict[str, Any] | None) -> dict[str, Any]:
+    """``overrides`` (parameter values given in Python, see
+    :meth:`~hdrqn_ros.middleware.port.Node.declare_parameters`) type-checked against
+    ``defaults``; a :class:`ParameterError` for a name without a default."""
+    if not overrides:
+        return {}
+    if unknown := sorted(set(overrides) - set(defaults)):
+        raise ParameterError(f"node {node}: no parameter {unknown[0]!r} to override; declared: {sorted(defaults)}")
+    return {name: check_parameter_type(node, name, defaults[name], value) for name, value in overrides.items()}
+
+
 DEFAULT_MAX_MESSAGE_BYTES = 64 * 2**20
 """Received samples larger than this are dropped with a warning (weights are ~2.5 MB)."""
+
+
+INTERFACE_ENV = "HDRQN_DDS_INTERFACE"
+"""The environment variable naming the network interface for DDS (the ``dds_interface`` parameter wins)."""
 
 
 @dataclass(frozen=True)
@@ -222,7 +237,7 @@ def process_settings(ros: RosArgs, environ: dict | None = None) -> ProcessSettin
                              params.get("ros_domain_id", environ.get("ROS_DOMAIN_ID", "0") or 0))
     if not 0 <= domain_id <= 232:
         raise ParameterError(f"ROS_DOMAIN_ID must be in 0..232, got {domain_id}")
-    interface = params.get("dds_interface") or environ.get("HDRQN_DDS_INTERFACE") or None
+    interface = params.get("dds_interface") or environ.get(INTERFACE_ENV) or None
     if interface is not None and not isinstance(interface, str):
         raise ParameterError(f"dds_interface must be an interface name, got {interface!r}")
     max_bytes = _int_setting("max_message_bytes", params.get("max_message_bytes", DEFAULT_MAX_MESSAGE_BYTES))

@@ -69,13 +69,15 @@ def playback_qos(info: TopicInfo) -> QoS:
 
 
 class PlayerNode:
-    """Plays ``bag`` onto the graph. ``progress(player)`` (optional) is called every
+    """Plays ``bag`` onto the graph. ``parameters`` (optional): values of :data:`PARAMETERS`
+    given in Python by code that runs the player in its own process (``hdrqn bag play``);
+    they win over ``--ros-args``. ``progress(player)`` (optional) is called every
     ``progress_period`` seconds on the spinning thread (the CLI's progress line)."""
 
     def __init__(self, mw: Middleware, progress: Callable[["PlayerNode"], None] | None = None,
-                 progress_period: float = 2.0):
+                 progress_period: float = 2.0, parameters: dict[str, Any] | None = None):
         node = self.node = mw.create_node("player")
-        p = self.params = node.declare_parameters(PARAMETERS)
+        p = self.params = node.declare_parameters(PARAMETERS, parameters)
         self.bags = [b for b in p["bag"] if b]
         if not self.bags:
             raise NodeConfigError("no bag to play: set the parameter bag to a list of bag directories")

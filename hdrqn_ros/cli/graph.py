@@ -1,0 +1,105 @@
+"""``hdrqn up``: the same training over the ROS 2 node graph, each node a process."""
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+from hdrqn_ros.cli.common import UsageError, config_from_args, done_line
+
+MAX_GROUPS = 64
+"""Most environment/controller groups ``hdrqn up`` starts (each is 4 node processes)."""
+
+
+def add_up(sub) -> None:
+    from hdrqn_ros.config import ALGOS
+    from hdrqn_ros.envs.registration import ENV_IDS
+    from hdrqn_ros.middleware import BACKENDS
+
+    p = sub.add_parser("up", help="train over the ROS 2 node graph: each node a separate process (rclpy or Cyclone DDS)",
+                       description="Start the environment, critic, meta-controller, sub-controller and learner "
+                                   "nodes as OS processes (real rclpy nodes where rclpy is installed, else the "
+                                   "Cyclone DDS backend; no ROS install needed), show a live status line, and "
+                                   "stop them all when the learner finishes or on Ctrl-C. DDS stays on the "
+                                   "loopback interface unless --interface is given. Node logs go to RUN_DIR/logs/.")
+    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory")
+    p.add_argument("--config", action="append", default=[], metavar="FILE", help="YAML training config (repeatable)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override any config key")
+    p.add_argument("--algo", choices=ALGOS, help="algorithm (default hdrqn-v2)")
+    p.add_argument("--env", choices=ENV_IDS, metavar="ENV_ID", help="environment id")
+    p.add_argument("--episodes", type=int, help="training episodes")
+    p.add_argument("--seed", type=int, help="seed (group i's environment uses seed + 1000 i)")
+    p.add_argument("--view", help="observation window: 3, 5, 11 or full (gridworld domains)")
+    p.add_argument("--groups", type=int, default=1, help="environment/controller groups feeding the learner")
+    p.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)")
+    p.add_argument("--interface", help="network interface for DDS (default: loopback only)")
+    p.add_argument("--middleware", choices=BACKENDS, default=None,
+                   help="node backend: rclpy (real ROS 2 nodes), cyclone (Cyclone DDS with ROS 2's wire "
+                        "conventions) or auto: rclpy where it can be imported (default: $HDRQN_MIDDLEWARE or auto)")
+    p.add_argument("--no-respawn", action="store_true", help="do not restart nodes that exit unexpectedly")
+    p.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
+    p.add_argument("--record", metavar="BAG_DIR",
+                   help="the learner records every message it takes from the groups to this new bag (rosbag2 MCAP)")
+
+
+def cmd_up(args) -> int:
+    import yaml
+
+    from hdrqn_ros.graph import graph_processes, write_params
+    from hdrqn_ros.middleware import BACKEND_ENV, BackendError, ParameterError, chosen_backend
+    from hdrqn_ros.middleware.network import check_user_fastdds_profile
+    from hdrqn_ros.supervisor import Supervisor
+    from hdrqn_ros.training.plots import plot_runs
+
+    run_dir = Path(args.out)
+    try:
+        backend = chosen_backend(args.middleware)
+        if backend == "rclpy" and not args.interface:
+            check_user_fastdds_profile()
+    except (BackendError, ParameterError) as exc:
+        raise UsageError(str(exc)) from None
+    if not 1 <= args.groups <= MAX_GROUPS:
+        raise UsageError(f"--groups must be in 1..{MAX_GROUPS} (4 node processes each), got {args.groups}")
+    if (run_dir / "checkpoints" / "last.pt").exists() and not args.resume:
+        raise UsageError(f"{run_dir} already holds a run; pass --resume to continue it or choose another --out")
+    cfg = config_from_args(args)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "summary.json").unlink(missing_ok=True)
+    config_file = run_dir / "graph-config.yaml"
+    config_file.write_text(yaml.safe_dump(cfg.model_dump(), sort_keys=False))
+    if args.record and os.path.lexists(args.record):
+        raise UsageError(f"{args.record} already exists; refusing to overwrite a recording")
+    extra = {"learner": {"record": str(Path(args.record).resolve())}} if args.record else None
+    params = write_params(cfg, run_dir, args.groups, config_file, interface=args.interface, extra=extra)
+    env = {BACKEND_ENV: backend}
+    if args.domain_id is not None:
+        if not 0 <= args.domain_id <= 232:
+            raise UsageError(f"--domain-id must be in 0..232, got {args.domain_id}")
+        env["ROS_DOMAIN_ID"] = str(args.domain_id)
+    specs = graph_processes(cfg, params, args.groups, respawn=not args.no_respawn)
+    nodes = "rclpy (ROS 2 Jazzy, Fast DDS)" if backend == "rclpy" else "Cyclone DDS"
+    print(f"starting {len(specs)} {nodes} node processes for {cfg.algo} on {cfg.env} {cfg.env_kwargs} "
+          f"({args.groups} group(s), {cfg.episodes} episodes, DDS on {args.interface or 'loopback'}) -> {run_dir}; "
+          f"node logs in {run_dir / 'logs'}", file=sys.stderr)
+    summary_path = run_dir / "summary.json"
+    supervisor = Supervisor(specs, env=env, log_dir=run_dir / "logs", status=lambda: _graph_status(run_dir))
+    rc = supervisor.run(until=summary_path.exists)
+    if not summary_path.exists():
+        print(f"hdrqn up: stopped before the learner finished (exit {rc}); the last checkpoint is in "
+              f"{run_dir / 'checkpoints'}; continue with --resume", file=sys.stderr)
+        return rc or 1
+    summary = json.loads(summary_path.read_text())
+    plot_runs([run_dir], run_dir / "curves.png")
+    print(done_line(summary, run_dir, f" over {len(specs)} node processes, {summary.get('updates', 0)} updates"))
+    return 0
+
+
+def _graph_status(run_dir: Path) -> str:
+    try:
+        s = json.loads((run_dir / "status.json").read_text())
+    except (OSError, ValueError):
+        return "waiting for the learner"
+    succ = "-" if s.get("success_last100") is None else f"{s['success_last100']:.2f}"
+    return (f"episode {s['episodes']}/{s['target_episodes']} steps {s['env_steps']} ({s['steps_per_s']:.0f}/s) "
+            f"updates {s['updates']} success {succ} eps {s['eps_sub']:.2f}/{s['eps_meta']:.2f}")

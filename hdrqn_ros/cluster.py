@@ -281,6 +281,8 @@ def run_task(spec: RunSpec, job: dict, payload: bytes | None, board) -> dict:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+        if shared:  # a gathered run's copy stays: a later attempt on this machine resumes from it
+            shutil.rmtree(work, ignore_errors=True)
         raise
     board.report.remote(spec.name, episodes_logged(run_dir))
     result = {"code": proc.returncode, "host": host}

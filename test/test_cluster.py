@@ -106,6 +106,15 @@ def ray_cluster():
     assert not left, f"Ray processes left after ray.shutdown(): {left}"
 
 
+@pytest.fixture(autouse=True)
+def no_worker_copies_left():
+    """Workers keep a run's copy in $TMPDIR/hdrqn-ray/KEY only while it runs (or after Ctrl-C, when gathering)."""
+    base = Path(tempfile.gettempdir()) / "hdrqn-ray"
+    before = set(base.glob("*"))
+    yield
+    assert set(base.glob("*")) <= before, sorted(set(base.glob("*")) - before)
+
+
 def _rows(path: Path) -> list[int]:
     with open(path) as f:
         return [int(r["episode"]) for r in csv.DictReader(f)]
@@ -125,8 +134,6 @@ def test_gather_mode_runs_listens_on_loopback_skips_finished_runs_and_plots(ray_
         log = (out / f"{name}.log").read_text()
         assert log.count("training dqn") == 1 and ": starting\n" in log and "done: 3 episodes" in log
     assert not list(out.glob(".*")), "no leftovers of the swap-in"
-    # the workers' copies are gone once the driver has the run
-    assert not any((Path(tempfile.gettempdir()) / "hdrqn-ray").glob("*/run"))
 
     # every Ray process (this driver, GCS, raylet, agents, workers) listens on loopback only
     pids = [os.getpid(), *_descendants(os.getpid())]
@@ -267,3 +274,46 @@ def test_without_ray_the_error_names_the_extra(monkeypatch):
         cluster.import_ray()
     assert isinstance(err.value, ValueError)  # hdrqn's main() turns ValueError into exit 2
     assert os.environ["RAY_USAGE_STATS_ENABLED"] == "0"
+
+
+DRIVER = """
+import sys
+from pathlib import Path
+from hdrqn_ros.cluster import run_experiment_on_ray
+from hdrqn_ros.experiments import EXPERIMENTS
+exp = EXPERIMENTS["exp3-gridworld-2goals"]
+try:
+    run_experiment_on_ray(exp, exp.runs([0], ["dqn"]), Path(sys.argv[1]), 100000, extra_sets=tuple(sys.argv[2:]),
+                          shared=True, progress=False, poll_s=0.5)
+except KeyboardInterrupt:
+    sys.exit(130)
+"""
+
+
+def test_ctrl_c_cancels_the_tasks_their_runs_checkpoint_and_no_ray_process_is_left(tmp_path):
+    """A driver of its own (``--ray`` without an address: it starts and stops a local cluster)."""
+    out = tmp_path / "exp"
+    env = {**os.environ, "PYTHONPATH": str(Path(cluster.__file__).resolve().parents[1])}
+    proc = subprocess.Popen([sys.executable, "-c", DRIVER, str(out), *LONGER], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        run_dir = out / "dqn-s0"
+        deadline = time.monotonic() + 90
+        while (episodes_logged(run_dir) < 8 or cluster.checkpoint_episodes(run_dir) is None) \
+                and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.2)
+        spawned = _descendants(proc.pid)
+        assert any("raylet" in " ".join(_cmdline(p)) for p in spawned)
+        proc.send_signal(signal.SIGINT)
+        output, _ = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, output
+    saved = cluster.checkpoint_episodes(run_dir)
+    assert saved is not None and saved >= episodes_logged(run_dir) >= 8, (saved, episodes_logged(run_dir))
+    log = (out / "dqn-s0.log").read_text()
+    assert "interrupted" in log, log  # hdrqn train stopped by SIGTERM, with a checkpoint
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and any(_cmdline(p) for p in spawned):
+        time.sleep(0.2)
+    assert not [_cmdline(p)[:1] for p in spawned if _cmdline(p)], "processes left by the driver's cluster"

@@ -123,7 +123,7 @@ def _rows(path: Path) -> list[int]:
 def test_gather_mode_runs_listens_on_loopback_skips_finished_runs_and_plots(ray_cluster, tmp_path):
     out = tmp_path / "exp"
     runs = EXP.runs([0, 1], ["dqn"])
-    results = cluster.run_experiment_on_ray(EXP, runs, out, 3, extra_sets=TINY, progress=False)
+    results = cluster.run_experiment_on_ray(EXP, runs, out, 3, extra_sets=TINY, poll_s=0.5)
     assert results == {"dqn-s0": 0, "dqn-s1": 0}
     manifest = json.loads((out / "experiment.json").read_text())
     assert [r["dir"] for r in manifest["runs"]] == ["dqn-s0", "dqn-s1"] and manifest["episodes"] == 3

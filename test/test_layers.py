@@ -27,7 +27,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("middleware backends", ("hdrqn_ros.middleware",)),
     ("nodes", ("hdrqn_ros.nodes",)),
     ("launch and cli", ("hdrqn_ros.graph", "hdrqn_ros.supervisor", "hdrqn_ros.launch_support",
-                        "hdrqn_ros.experiments", "hdrqn_ros.cli")),
+                        "hdrqn_ros.experiments", "hdrqn_ros.cluster", "hdrqn_ros.cli")),
 ]
 """Lowest first. A module may import from its own layer and the layers below. The port
 (``Node``/``Publisher``/``QoS``, array helpers: an interface, no DDS) sits below the protocol,

@@ -72,6 +72,8 @@ class StepRecord:
 
 
 class ActingController(Protocol):
+    """What the policy needs of a controller (see the module docstring)."""
+
     def act(self, x: np.ndarray, state): ...
 
     def initial_state(self, batch_size: int): ...

@@ -22,10 +22,11 @@ import torch
 
 import hdrqn_ros  # noqa: F401  (registers the ids)
 from hdrqn_ros.agents.algorithms import stack_subgoal
+from hdrqn_ros.agents.policy import epsilon_greedy
 from hdrqn_ros.config import build_config
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.episodes import EpisodeRecorder
-from hdrqn_ros.training.rollout import Rollout, epsilon_greedy
+from hdrqn_ros.training.rollout import Rollout
 from hdrqn_ros.training.trainer import Trainer, build_agent
 
 TARGET_RATIO = 1.3

@@ -165,7 +165,7 @@ def test_table_4_7_defaults():
 
 
 def test_epsilon_greedy_never_takes_the_invalid_choice():
-    from hdrqn_ros.training.rollout import epsilon_greedy
+    from hdrqn_ros.agents.policy import epsilon_greedy
 
     rng = np.random.default_rng(0)
     q = np.tile(np.array([[0.0, 5.0, 1.0]]), (3000, 1))

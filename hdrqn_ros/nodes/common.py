@@ -20,7 +20,6 @@ from hdrqn_ros.nodes.nav import NavConfigError
 from hdrqn_ros.recording.bag import BagError
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint
 from hdrqn_ros.throttle import Throttle
-from hdrqn_ros.training.rollout import epsilon_greedy
 
 ENV_DEFAULTS = {"algo": "hdrqn-v2", "env": "hdrqn/GridWorld-2Goals-v0", "view": "5", "seed": 0}
 """Parameters every training-graph node declares (the launch files set them once for all
@@ -56,8 +55,9 @@ def domain_sizes(env_id: str, view: str) -> tuple[int, int]:
 
 
 class ActingNetwork:
-    """A controller's Q-network for acting in a node: greedy/epsilon choices, weights
-    from a checkpoint and from the learner's ``/learner/*_weights`` topic."""
+    """A controller's Q-network for acting in a node, its exploration (``epsilon``,
+    ``rng``), weights from a checkpoint and from the learner's ``/learner/*_weights`` topic.
+    Inference tensors: its LSTM states are replaced, never changed in place (N = 1)."""
 
     def __init__(self, node: Node, role: str, params: dict, default_epsilon: float):
         check_algo(params["algo"])
@@ -100,15 +100,15 @@ class ActingNetwork:
         if self.fixed_epsilon is None:
             self.epsilon = credit["eps_meta" if self.role == "meta" else "eps_sub"]
 
-    def choose(self, x: np.ndarray, state, invalid: int = -1):
-        """One decision for input ``x`` (one row, no batch axis): (index, new LSTM state)."""
+    def act(self, x: np.ndarray, state):
+        """``x`` (B, ...) -> (Q-values (B, n) numpy, new LSTM state): a controller of
+        :class:`~hdrqn_ros.agents.policy.HierarchicalPolicy`."""
         with torch.inference_mode():
-            q, state = self.net.act(torch.tensor(x[None]), state)  # a copy: x may be read-only
-        inv = None if invalid < 0 else np.array([invalid])
-        return int(epsilon_greedy(q.numpy(), self.epsilon, self.rng, invalid=inv)[0]), state
+            q, state = self.net.act(torch.tensor(x), state)  # a copy: x may be read-only
+        return q.numpy(), state
 
-    def initial_state(self):
-        return self.net.initial_state(1)
+    def initial_state(self, batch_size: int):
+        return self.net.initial_state(batch_size)
 
 
 def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None) -> int:

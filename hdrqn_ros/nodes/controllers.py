@@ -15,12 +15,15 @@ import numpy as np
 
 from hdrqn_ros.agents.algorithms import ALGO_SPECS, stack_subgoal
 from hdrqn_ros.agents.networks import lstm_state_size
+from hdrqn_ros.agents.policy import HierarchicalPolicy
 from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
 from hdrqn_ros.nodes import nav
 from hdrqn_ros.protocol import wire as P
 from hdrqn_ros.nodes.common import ENV_DEFAULTS, ActingNetwork, NodeConfigError, run_node
 from hdrqn_ros.protocol.follower import StepFollower, done
+
+_ONE = np.ones(1, bool)  # the rows mask of a node's policy: its one environment
 
 CONTROLLER_PARAMETERS = {**ENV_DEFAULTS, "epsilon": -1.0, "checkpoint": "", "meta_state": "c"}
 """``epsilon`` < 0: explore with the learner's schedule (1.0 until it is heard from);
@@ -42,7 +45,9 @@ class _Controller(StepFollower):
             raise NodeConfigError(f"meta_state must be 'c' or 'h', got {p['meta_state']!r}")
         self.net = ActingNetwork(node, self.role, p, default_epsilon=1.0)
         self.spec = ALGO_SPECS[p["algo"]]
-        self.state = self.net.initial_state()
+        # this node's level of the policy, for its one environment
+        sub, meta = (self.net, None) if self.role == "sub" else (None, self.net)
+        self.policy = HierarchicalPolicy(1, sub, meta, self.spec.meta_input, p["meta_state"])
         if p.get("observation_source", "topic") == "topic":  # lock-step with the environment node
             node.create_subscription(P.FLOATS, P.ENV_STEP, self.on_env_step, P.STEP_QOS)
         node.create_subscription(P.FLOATS, P.CREDIT, self._on_credit, LATCHED_QOS)
@@ -64,7 +69,7 @@ class _Controller(StepFollower):
 
     def reset(self) -> None:
         super().reset()
-        self.state = self.net.initial_state()
+        self.policy.start_episodes(_ONE)
 
 
 class SubControllerNode(_Controller):
@@ -81,11 +86,10 @@ class SubControllerNode(_Controller):
         self.subgoal_image = np.zeros((OBS_SIZE, OBS_SIZE, 3), np.uint8)
         self.pub_action = node.create_publisher(P.INTS, P.ACTION, P.STEP_QOS)
         self.pub_state = node.create_publisher(P.FLOATS, P.SUB_STATE, P.STEP_QOS) if self.spec.meta_input == "state" else None
-        self.state_index = 1 if p["meta_state"] == "c" else 0
         self.actions = nav.ActionTable.load(p["action_table"], self.net.num_actions) if p["action_table"] else None
         self.pub_cmd = node.create_publisher(self.actions.type_name, p["cmd_vel_topic"]) if self.actions else None
         self.goals = nav.SubgoalTable.load(p["subgoal_table"], self.net.num_subgoals) if p["subgoal_table"] else None
-        self.free_subgoal = self.option_subgoal = -1  # costmap mode: latest subgoal, current option's
+        self.free_subgoal = -1  # costmap mode: the latest subgoal heard
         self.costmaps = 0
         source = p["observation_source"]
         if source == "costmap":
@@ -125,14 +129,13 @@ class SubControllerNode(_Controller):
         if self.spec.hierarchical:
             if self.free_subgoal < 0:
                 return  # no subgoal yet
-            if self.free_subgoal != self.option_subgoal:
-                self.state = self.net.initial_state()  # a new option
-                self.option_subgoal = self.free_subgoal
+            if self.free_subgoal != self.policy.subgoal[0]:  # a new option
+                self.policy.start_options(_ONE, np.array([self.free_subgoal]))
             if self.goals is not None:
                 self.subgoal_image = nav.costmap_to_observation(
                     msg, robot_xy=self.goals.poses[self.free_subgoal][:2], view_cells=view)
             x = stack_subgoal(obs, self.subgoal_image)
-        action, self.state = self.net.choose(x, self.state)
+        action = int(self.policy.act(x[None], self.net.epsilon, self.net.rng)[0])
         self.pub_action.publish(P.make_record(self.node, P.INTS, P.ACTION_FIELDS, [key, action]))
         if self.pub_cmd is not None:
             self.pub_cmd.publish(self.actions.twist_msg(self.node, action, key))
@@ -147,7 +150,7 @@ class SubControllerNode(_Controller):
         previous action (its input), before the critic has even decided."""
         may_end = step["t"] > 0 and (step["decision_point"] or done(step))
         if self.pub_state is not None and may_end and int(step["prev_key"]) == self.acted_key:
-            self.pub_state.publish(P.make_state(self.node, self.acted_key, self.state[self.state_index][0].numpy()))
+            self.pub_state.publish(P.make_state(self.node, self.acted_key, self.policy.sub_end_state()[0]))
 
     def ready(self, step: dict) -> bool:
         key = int(step["key"])
@@ -168,15 +171,15 @@ class SubControllerNode(_Controller):
         key = int(step["key"])
         obs = self.inbox.get(P.OBSERVATION, key)
         if step["t"] == 0:
-            self.state = self.net.initial_state()
+            self.policy.start_episodes(_ONE)
         x = obs
         if self.spec.hierarchical:
             if self.option_starts(key):
-                self.state = self.net.initial_state()  # h^S <- 0 for every new option (Algorithm 1)
                 g = int(self.inbox.get(P.SUBGOAL, key)["subgoal"])
+                self.policy.start_options(_ONE, np.array([g]))
                 self.subgoal_image = self.inbox.get(P.SUBGOAL_IMAGES, key)[g * OBS_SIZE:(g + 1) * OBS_SIZE]
             x = stack_subgoal(obs, self.subgoal_image)
-        action, self.state = self.net.choose(x, self.state)
+        action = int(self.policy.act(x[None], self.net.epsilon, self.net.rng)[0])
         self.acted_key = key
         replies = [(self.pub_action, P.make_record(self.node, P.INTS, P.ACTION_FIELDS, [key, action]))]
         if self.pub_cmd is not None:
@@ -203,8 +206,6 @@ class MetaControllerNode(_Controller):
         node, p = self.node, self.params
         self.goals = nav.SubgoalTable.load(p["subgoal_table"], self.net.num_subgoals) if p["subgoal_table"] else None
         self.pub_goal = node.create_publisher(nav.POSE_STAMPED, p["goal_pose_topic"]) if self.goals else None
-        self.subgoal = -1
-        self.last_sub_state = np.zeros(lstm_state_size, np.float32)
         self.pub_subgoal = node.create_publisher(P.INTS, P.SUBGOAL, P.STEP_QOS)
         node.create_subscription(P.FLOATS, P.CRITIC, self._on_critic, P.STEP_QOS)
         if self.spec.meta_input == "state":
@@ -238,18 +239,19 @@ class MetaControllerNode(_Controller):
         key = int(step["key"])
         if done(step) or not self.option_starts(key):
             return []
+        state_input = self.spec.meta_input == "state"
         if step["t"] == 0:
-            self.state = self.net.initial_state()  # h^M <- 0 for every episode
-            self.last_sub_state[:] = 0.0
-        elif self.spec.meta_input == "state":
-            self.last_sub_state = self.inbox.get(P.SUB_STATE, int(step["prev_key"]))
-        x = self.last_sub_state if self.spec.meta_input == "state" else self.inbox.get(P.OBSERVATION, key)
-        place = int(step["at_subgoal"]) if step["t"] > 0 else -1  # may not choose the subgoal it stands on
-        self.subgoal, self.state = self.net.choose(x, self.state, invalid=place)
-        replies = [(self.pub_subgoal, P.make_record(self.node, P.INTS, P.SUBGOAL_FIELDS, [key, self.subgoal, 1]))]
+            self.policy.start_episodes(_ONE)
+        else:  # the previous option ended: where it stands, and (hDRQNv2) the sub-controller's state
+            sub_end = self.inbox.get(P.SUB_STATE, int(step["prev_key"]))[None] if state_input else None
+            self.policy.end_options(_ONE, np.array([int(step["at_subgoal"])]), sub_end)
+        obs = None if state_input else self.inbox.get(P.OBSERVATION, key)[None]
+        g, _ = self.policy.choose_subgoals(_ONE, obs, self.net.epsilon, self.net.rng)
+        subgoal = int(g[0])
+        replies = [(self.pub_subgoal, P.make_record(self.node, P.INTS, P.SUBGOAL_FIELDS, [key, subgoal, 1]))]
         if self.pub_goal is not None:
             stamp = P.Stamp.of(key)
-            replies.append((self.pub_goal, self.goals.pose_msg(self.node, self.subgoal, stamp.sec, stamp.nanosec)))
+            replies.append((self.pub_goal, self.goals.pose_msg(self.node, subgoal, stamp.sec, stamp.nanosec)))
         return replies
 
 

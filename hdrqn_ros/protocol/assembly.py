@@ -16,13 +16,13 @@ import numpy as np
 
 from hdrqn_ros.agents.algorithms import ALGO_SPECS
 from hdrqn_ros.agents.networks import lstm_state_size
+from hdrqn_ros.agents.policy import StepRecord
 from hdrqn_ros.config import TrainConfig, batch_class
 from hdrqn_ros.critic import sub_controller_terminal
 from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.protocol import wire as P
 from hdrqn_ros.protocol.follower import StepFollower, done
 from hdrqn_ros.training.episodes import EpisodeRecorder
-from hdrqn_ros.training.rollout import StepRecord
 
 
 def _critic_of(step: dict, critic: dict) -> dict:

@@ -22,13 +22,13 @@ import numpy as np
 import yaml
 
 from hdrqn_ros.agents.algorithms import ALGO_SPECS
+from hdrqn_ros.agents.policy import StepRecord
 from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.envs.domain import NO_SUBGOAL
 from hdrqn_ros.envs.registration import MONTEZUMA_IDS
 from hdrqn_ros.protocol import wire as P
 from hdrqn_ros.protocol.assembly import TransitionAssembler
 from hdrqn_ros.recording.bag import TYPESTORE, BagError, BagWriter, bag_custom_data, open_bag, read_messages
-from hdrqn_ros.training.rollout import StepRecord
 from hdrqn_ros.yaml_files import safe_load
 
 CONFIG_KEY = "hdrqn.config"

@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hdrqn_ros.agents.policy import StepRecord
 from hdrqn_ros.agents.replay import Episode
-from hdrqn_ros.training.rollout import StepRecord
 
 
 @dataclass(frozen=True)

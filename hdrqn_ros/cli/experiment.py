@@ -10,13 +10,15 @@ from hdrqn_ros.cli.common import UsageError
 
 
 def add_experiment(sub) -> None:
+    from hdrqn_ros.cluster import add_ray_arguments
     from hdrqn_ros.config import ALGOS
     from hdrqn_ros.experiments import EXPERIMENTS
 
     p = sub.add_parser("experiment", help="run a thesis experiment (chapter 4) over several seeds, in parallel",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
                        description="Runs every setting of the experiment for every seed as `hdrqn train` "
-                                   "processes (JOBS at a time; logs in OUT/RUN.log). Finished runs are skipped "
+                                   "processes (JOBS at a time, or as tasks of a Ray cluster with --ray; logs in "
+                                   "OUT/RUN.log). Finished runs are skipped "
                                    "and interrupted ones resumed, so the same command continues an experiment. "
                                    "Then `hdrqn plot OUT` draws its figures and table.",
                        epilog="experiments:\n" + "\n".join(f"  {e.name:24s} {e.title}" for e in EXPERIMENTS.values()))
@@ -30,6 +32,7 @@ def add_experiment(sub) -> None:
     p.add_argument("--out", metavar="DIR", help="experiment directory (default runs/NAME)")
     p.add_argument("--dry-run", action="store_true", help="print the runs' commands and exit")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_ray_arguments(p)
 
 
 def add_plot(sub) -> None:
@@ -51,6 +54,7 @@ def add_envs(sub) -> None:
 def cmd_experiment(args) -> int:
     import shlex
 
+    from hdrqn_ros.cluster import ray_options, run_experiment_on_ray
     from hdrqn_ros.config import parse_set
     from hdrqn_ros.experiments import EXPERIMENTS, default_jobs, manifest, run_experiment
 
@@ -62,17 +66,23 @@ def cmd_experiment(args) -> int:
     jobs = args.jobs if args.jobs is not None else default_jobs()
     if jobs < 1:
         raise UsageError(f"--jobs must be >= 1, got {jobs}")
+    ray_kw = ray_options(args)  # {} without --ray
     out = Path(args.out or f"runs/{exp.name}")
     runs = exp.runs(args.seeds, args.algos)
     if not runs:
         raise UsageError(f"{exp.name} has no setting for {', '.join(args.algos)}")
     print(f"{exp.title}: {len(runs)} runs ({len(runs) // len(args.seeds)} settings x {len(args.seeds)} seeds), "
-          f"{jobs} at a time -> {out}", file=sys.stderr)
+          + (f"as Ray tasks ({args.ray})" if args.ray is not None else f"{jobs} at a time") + f" -> {out}",
+          file=sys.stderr)
     if args.dry_run:
         for run in manifest(exp, runs, out, args.episodes, sets)["runs"]:
             print(shlex.join(run["command"]))
         return 0
-    results = run_experiment(exp, runs, out, args.episodes, jobs, sets, progress=not args.no_progress)
+    if args.ray is not None:
+        results = run_experiment_on_ray(exp, runs, out, args.episodes, extra_sets=sets,
+                                        progress=not args.no_progress, **ray_kw)
+    else:
+        results = run_experiment(exp, runs, out, args.episodes, jobs, sets, progress=not args.no_progress)
     failed = sorted(name for name, code in results.items() if code != 0)
     print(f"{exp.name}: {len(results) - len(failed)}/{len(runs)} runs finished"
           + (f"; failed: {', '.join(failed)}" if failed else "") + f"; next: hdrqn plot {out}")

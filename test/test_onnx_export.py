@@ -245,6 +245,16 @@ def test_export_refuses_a_missing_checkpoint(tmp_path):
     assert not (tmp_path / "policy").exists()
 
 
+def test_the_export_command_writes_a_policy_and_names_a_bad_checkpoint(exported, tmp_path, capsys):
+    from hdrqn_ros.cli import main
+
+    ckpt, _ = exported["drqn"]
+    assert main(["export", "--checkpoint", str(ckpt), "--out", str(tmp_path / "policy")]) == 0
+    assert OnnxPolicy.load(tmp_path / "policy").algo == "drqn"
+    assert main(["export", "--checkpoint", str(tmp_path / "nope.pt"), "--out", str(tmp_path / "p2")]) == 2
+    assert "nope.pt does not exist" in capsys.readouterr().err
+
+
 # ---- ONNX Runtime == torch -----------------------------------------------------------
 
 @pytest.mark.parametrize("algo", ALGOS)

@@ -5,7 +5,8 @@ checkpoint or file), 130 interrupted.
 
 One module per command group: :mod:`~hdrqn_ros.cli.train` (train, eval),
 :mod:`~hdrqn_ros.cli.graph` (up), :mod:`~hdrqn_ros.cli.experiment` (experiment, plot,
-envs), :mod:`~hdrqn_ros.cli.bag` (bag info, repair, play); this module wires them into
+envs), :mod:`~hdrqn_ros.cli.bag` (bag info, repair, play), :mod:`~hdrqn_ros.cli.export`
+(export); this module wires them into
 one parser and runs a command with the exit codes above.
 """
 from __future__ import annotations
@@ -20,6 +21,7 @@ from hdrqn_ros import __version__
 from hdrqn_ros.cli.bag import add_bag, cmd_bag
 from hdrqn_ros.cli.common import UsageError
 from hdrqn_ros.cli.experiment import add_envs, add_experiment, add_plot, cmd_envs, cmd_experiment, cmd_plot
+from hdrqn_ros.cli.export import add_export, cmd_export
 from hdrqn_ros.cli.graph import MAX_GROUPS, add_up, cmd_up
 from hdrqn_ros.cli.train import add_eval, add_train, cmd_eval, cmd_train
 
@@ -28,6 +30,7 @@ EPILOG = """examples:
   hdrqn train --config config/exp3_gridworld_2goals.yaml --algo hdqn --seed 1 --out runs/hdqn-s1
   hdrqn up --episodes 300 --out runs/graph     # the same training over the ROS 2 node graph
   hdrqn eval --checkpoint runs/v2/checkpoints/last.pt --episodes 200
+  hdrqn export --checkpoint runs/v2/checkpoints/last.pt --out policy/   # ONNX, acting without torch
   hdrqn plot runs/v2 runs/hdqn-s1 --out curves.png
   hdrqn experiment exp3-gridworld-2goals --seeds 0 1 2 --episodes 5000   # a thesis experiment
   hdrqn plot runs/exp3-gridworld-2goals                                  # its figures and table
@@ -43,12 +46,13 @@ def build_parser() -> argparse.ArgumentParser:
         description="Hierarchical deep recurrent Q-learning (hDRQN) on partially observable hierarchical tasks.")
     parser.add_argument("--version", action="version", version=f"hdrqn_ros {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for add in (add_train, add_up, add_eval, add_experiment, add_plot, add_bag, add_envs):
+    for add in (add_train, add_up, add_eval, add_export, add_experiment, add_plot, add_bag, add_envs):
         add(sub)
     return parser
 
 
-COMMANDS = {"train": cmd_train, "up": cmd_up, "eval": cmd_eval, "experiment": cmd_experiment, "plot": cmd_plot, "bag": cmd_bag, "envs": cmd_envs}
+COMMANDS = {"train": cmd_train, "up": cmd_up, "eval": cmd_eval, "export": cmd_export, "experiment": cmd_experiment,
+            "plot": cmd_plot, "bag": cmd_bag, "envs": cmd_envs}
 
 
 def _interrupt(signum, frame):

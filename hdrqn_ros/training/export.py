@@ -45,7 +45,7 @@ VERIFY_TOLERANCE = 1e-4
 random inputs after writing each model (measured: ~1e-7)."""
 
 
-class ExportError(RuntimeError):
+class ExportError(ValueError):
     """A model could not be exported, or the exported model does not compute what torch does."""
 
 

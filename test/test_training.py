@@ -15,7 +15,8 @@ from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint
 from hdrqn_ros.training.episodes import EpisodeRecorder
 from hdrqn_ros.training.rollout import Rollout
-from hdrqn_ros.training.trainer import Trainer, build_agent
+from hdrqn_ros.training.learner import build_agent
+from hdrqn_ros.training.trainer import Trainer
 
 ENV = "hdrqn/GridWorld-2Goals-v0"
 

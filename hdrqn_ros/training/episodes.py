@@ -110,11 +110,11 @@ class EpisodeRecorder:
                 k = int(rec.option_steps[i])
                 ep.option_log.append(OptionOutcome(ep.option_start, int(rec.subgoal[i]), k,
                                                    ep.place == int(rec.subgoal[i])))
-                reward, discount, terminal, next_invalid = meta_transition(
+                meta_r, discount, terminal, next_invalid = meta_transition(
                     rec.option_extrinsic[i], env.terminated[i], k, env.at_subgoal[i], self.meta_gamma,
                     self.smdp_discount)
                 ep.meta_action.append(rec.subgoal[i])
-                ep.meta_reward.append(reward)
+                ep.meta_reward.append(meta_r)
                 ep.meta_terminal.append(terminal)
                 ep.meta_discount.append(discount)
                 ep.meta_next_invalid.append(next_invalid)

@@ -1,9 +1,10 @@
 """``learner`` node: assembles transitions from the graph, owns replay, trains, publishes weights.
 
 For each environment group (a namespace in ``groups``) a
-:class:`~hdrqn_ros.protocol.group.GroupAssembler` joins
-the group's messages by step key into the same :class:`StepRecord` rows the in-process
-rollout produces, and the same :class:`EpisodeRecorder` turns them into replay episodes.
+:class:`~hdrqn_ros.protocol.group.GroupAssembler` joins the group's messages by step key
+into the same :class:`StepRecord` rows the in-process rollout produces, and the same
+:class:`EpisodeRecorder` turns them into replay episodes (recorded, when ``record``, by
+:class:`~hdrqn_ros.recording.received.GraphRecorder`).
 A training thread runs the :class:`~hdrqn_ros.training.learner.Learner` (one update per
 controller every ``update_every`` env steps), publishes weights every ``weights_every``
 updates on latched topics, and checkpoints. Each group's environment may run

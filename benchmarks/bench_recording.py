@@ -55,7 +55,8 @@ from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.middleware import chosen_backend
 from hdrqn_ros.recording.transitions import TransitionRecorder
 from hdrqn_ros.training.rollout import Rollout
-from hdrqn_ros.training.trainer import Trainer, build_agent
+from hdrqn_ros.training.learner import build_agent
+from hdrqn_ros.training.trainer import Trainer
 
 TARGET_RATIO = 0.9
 ALGO = "hdrqn-v2"

@@ -26,8 +26,9 @@ from hdrqn_ros.agents.policy import epsilon_greedy
 from hdrqn_ros.config import build_config
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.episodes import EpisodeRecorder
+from hdrqn_ros.training.learner import build_agent
 from hdrqn_ros.training.rollout import Rollout
-from hdrqn_ros.training.trainer import Trainer, build_agent
+from hdrqn_ros.training.trainer import Trainer
 
 TARGET_RATIO = 1.3
 ENV = "hdrqn/GridWorld-2Goals-v0"

@@ -254,8 +254,8 @@ def test_double_dqn_on_a_real_lstm_net_matches_hand_computation(loss, with_inval
     if not with_invalid:
         del batch.fields["next_invalid"]
     f = batch.fields
-    online = [_unrolled_q(ctrl.online, batch.frames[i, :w + 1]) for i, w in enumerate(batch.lengths)]
-    target = [_unrolled_q(ctrl.target, batch.frames[i, :w + 1]) for i, w in enumerate(batch.lengths)]
+    online = [_unrolled_q(ctrl.online, batch.frames[i, :w + 1]) for i, w in enumerate(batch.valid.sum(axis=1))]
+    target = [_unrolled_q(ctrl.target, batch.frames[i, :w + 1]) for i, w in enumerate(batch.valid.sum(axis=1))]
     if with_invalid:  # make the invalid choice the online favourite at some next steps
         for i, t in ((0, 1), (1, 3), (3, 0)):
             f["next_invalid"][i, t] = online[i][t + 1].argmax()

@@ -12,7 +12,7 @@ from hdrqn_ros.config import build_config
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.episodes import EpisodeRecorder
 from hdrqn_ros.training.rollout import Rollout
-from hdrqn_ros.training.trainer import build_agent
+from hdrqn_ros.training.learner import build_agent
 
 ENV = "hdrqn/GridWorld-3Goals-v0"  # three goals: several options an episode
 UP, DOWN, LEFT, RIGHT = range(4)

@@ -46,14 +46,14 @@ def test_sigterm_during_an_offline_update_stops_after_it_with_a_checkpoint(tmp_p
     cfg = build_config([], base=bag_config(sample))
     trainer = OfflineTrainer(cfg, tmp_path / "offline", progress=False, tensorboard=False)
     trainer.fill(read_episodes([sample], cfg, trainer.agent.num_subgoals))
-    update = trainer._update
+    update = trainer.update_once
 
     def update_hit_by_sigterm_on_the_third(offline):
         if trainer.agent.sub.updates == 2:
             os.kill(os.getpid(), signal.SIGTERM)  # lands before this update's work
         update(offline=offline)
 
-    trainer._update = update_hit_by_sigterm_on_the_third
+    trainer.update_once = update_hit_by_sigterm_on_the_third
     previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
         with pytest.raises(KeyboardInterrupt):

@@ -18,7 +18,7 @@ from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.recording.transitions import TransitionRecorder, read_episodes
 from hdrqn_ros.training.episodes import EpisodeRecorder
 from hdrqn_ros.training.rollout import Rollout
-from hdrqn_ros.training.trainer import build_agent
+from hdrqn_ros.training.learner import build_agent
 
 ENV_ID = "hdrqn/MontezumaRevenge-v0"
 NOOP, FIRE, UP, RIGHT, LEFT, DOWN, RIGHTFIRE, LEFTFIRE = 0, 1, 2, 3, 4, 5, 11, 12

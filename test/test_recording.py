@@ -31,8 +31,14 @@ def train_and_record(tmp_path: Path, algo: str, **bag_options):
     sink = TransitionRecorder(tmp_path / f"bag-{algo}", cfg, cfg.num_envs, **bag_options)
     trainer = Trainer(cfg, tmp_path / f"run-{algo}", progress=False, tensorboard=False, sink=sink)
     stored = []
-    add = trainer.add_episode
-    trainer.add_episode = lambda sub, meta: (stored.append((sub, meta)), add(sub, meta))
+    store = trainer.store
+
+    def keep(items, counted=True):
+        items = list(items)
+        stored.extend((sub, meta) for _, sub, meta, _ in items)
+        return store(items, counted)
+
+    trainer.store = keep
     trainer.run()
     return cfg, sink.path, stored, trainer
 

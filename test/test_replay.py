@@ -1,6 +1,7 @@
 """Episodic replay for Bootstrapped Random Updates (thesis 3.4)."""
 import numpy as np
 import pytest
+import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -315,3 +316,61 @@ def test_loss_masks_match_the_written_table(n, table):
         w = v.count("1")
         np.testing.assert_array_equal(batch.fields["step"][i, :w], np.arange(s, s + w))
         assert (batch.frames[i, : w + 1, 0] == e).all()
+
+
+class _ScriptedRng:
+    """``np.random.Generator`` stand-in: the minibatch's episodes, then each window's start."""
+
+    def __init__(self, episodes, starts):
+        self.episodes, self.starts = np.array(episodes), iter(starts)
+
+    def integers(self, high, size=None):
+        return self.episodes if size is not None else next(self.starts)
+
+
+def _typed_episode(next_invalid=True):
+    fields = {"action": np.array([2, 0, 1, 3, 1], np.uint8),
+              "reward": np.array([0.5, 1.0, 0.0, -1.0, 2.0], np.float32),
+              "terminal": np.array([False, False, False, False, True]),
+              "discount": np.array([0.9, 0.81, 0.9, 0.729, 0.9], np.float32)}
+    if next_invalid:
+        fields["next_invalid"] = np.array([-1, 2, -1, 0, 1], np.int8)
+    frames = np.arange(6, dtype=np.float32)[:, None] * np.array([1.0, 10.0], np.float32)  # frame t = (t, 10 t)
+    return Episode(frames, fields, segment_starts=np.array([0, 3], np.int32),
+                   segment_data={"img": np.array([100, 200], np.float32)})
+
+
+def test_sample_transitions_is_a_typed_batch_with_the_stored_values():
+    """A hand-made episode of two segments (steps 0-2, 3-4), windows of n = 3 from steps 1
+    and 3: the typed batch holds exactly the stored fields, right-padded, with the loss mask
+    (window from step 1: its last n // 2 = 1 step; from step 3, a segment start: all steps)."""
+    replay = EpisodeReplay(4, seed=0)
+    replay.add(_typed_episode())
+    built = []
+
+    def build_input(window):  # the network input: each frame plus its segment's data
+        built.append(window)
+        return window.frames + window.segment_data["img"][:, None, None]
+
+    b = replay.sample_transitions(2, 3, build_input, rng=_ScriptedRng([0, 0], [1, 3]))
+    assert type(b).__name__ == "ReplaySamples" and b._fields == (
+        "obs", "action", "reward", "discount", "terminal", "mask", "next_invalid")
+    assert len(built) == 1
+    obs = np.zeros((2, 4, 2), np.float32)
+    obs[0, :3] = [[101, 110], [102, 120], [103, 130]]  # frames 1..3 + segment 0's 100
+    obs[0, 3] = 100  # padding frame (zeros) + the segment's data
+    obs[1, :3] = [[203, 230], [204, 240], [205, 250]]  # frames 3..5 + segment 1's 200
+    obs[1, 3] = 200
+    np.testing.assert_array_equal(b.obs.numpy(), obs)
+    assert b.obs.dtype == torch.float32
+    assert b.action.dtype == torch.int64 and b.action.tolist() == [[0, 1, 0], [3, 1, 0]]
+    assert b.reward.dtype == torch.float32 and b.reward.tolist() == [[1.0, 0.0, 0.0], [-1.0, 2.0, 0.0]]
+    assert b.discount.dtype == torch.float32
+    np.testing.assert_array_equal(b.discount.numpy(), np.array([[0.81, 0.9, 0], [0.729, 0.9, 0]], np.float32))
+    assert b.terminal.dtype == torch.float32 and b.terminal.tolist() == [[0, 0, 0], [0, 1, 0]]
+    assert b.mask.dtype == torch.bool and b.mask.tolist() == [[False, True, False], [True, True, False]]
+    assert b.next_invalid.dtype == torch.int64 and b.next_invalid.tolist() == [[2, -1, 0], [0, 1, 0]]
+
+    flat = EpisodeReplay(4, seed=0)
+    flat.add(_typed_episode(next_invalid=False))
+    assert flat.sample_transitions(3, 2, lambda w: w.frames).next_invalid is None

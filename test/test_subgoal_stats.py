@@ -18,7 +18,8 @@ from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.episodes import EpisodeRecorder, OptionOutcome
 from hdrqn_ros.training.rollout import Rollout
 from hdrqn_ros.training.subgoals import option_table, option_table_markdown, read_options
-from hdrqn_ros.training.trainer import Trainer, build_agent
+from hdrqn_ros.training.learner import build_agent
+from hdrqn_ros.training.trainer import Trainer
 
 ENV = "hdrqn/GridWorld-3Goals-v0"
 

@@ -15,7 +15,8 @@ from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint
 from hdrqn_ros.training.episodes import EpisodeRecorder
 from hdrqn_ros.training.rollout import Rollout
-from hdrqn_ros.training.trainer import Trainer, build_agent
+from hdrqn_ros.training.learner import build_agent
+from hdrqn_ros.training.trainer import Trainer
 
 ENV = "hdrqn/GridWorld-2Goals-v0"
 
@@ -251,3 +252,36 @@ def test_oversized_batches_and_graphs_are_refused(argv, message, tmp_path, capsy
     assert main([*argv, *out]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+def test_learner_schedule_and_store(tmp_path):
+    """The loop skeleton's bookkeeping: ``store`` counts a run's episodes (not recorded
+    ones), ``due`` fires once per multiple of ``eval_every`` / ``checkpoint_every`` after
+    ``begin``, and ``update_once`` waits for a batch of episodes and, for the
+    meta-controller, for phase 2."""
+    from hdrqn_ros.training.learner import Learner
+
+    cfg = tiny(eval_every=3, checkpoint_every=2, sub_only_episodes=3, learning_starts=10**6)
+    learner = Learner(cfg, tmp_path, progress=False, tensorboard=False)
+    rollout = Rollout(make_batch(ENV, 2), learner.agent, seed=0)
+    rec = EpisodeRecorder(2, True, cfg.sub.gamma, cfg.meta.gamma)
+    rng = np.random.default_rng(0)
+    items = []
+    while len(items) < 5:
+        items += rec.add(rollout.step(1.0, 1.0, rng))
+    steps = sum(stats.steps for *_, stats in items[:2])
+    assert learner.store(items[:2], counted=False) == (2, steps)
+    assert learner.episodes == 0 and len(learner.agent.sub.replay) == len(learner.agent.meta.replay) == 2
+    learner.begin()
+    learner.update_once(offline=True)  # a batch of 2 episodes, but phase 1: the sub-controller only
+    assert (learner.agent.sub.updates, learner.agent.meta.updates) == (1, 0)
+    learner.update_once()  # online: before learning_starts, nothing learns
+    assert (learner.agent.sub.updates, learner.agent.meta.updates) == (1, 0)
+    fired = []
+    for item in items[2:5]:
+        learner.store([item])
+        fired.append((learner.episodes, learner.due("eval"), learner.due("checkpoint"), learner.due("checkpoint")))
+    assert fired == [(1, False, False, False), (2, False, True, False), (3, True, False, False)]
+    learner.update_once(offline=True)  # phase 2 from sub_only_episodes = 3 on: both learn
+    assert (learner.agent.sub.updates, learner.agent.meta.updates) == (2, 1)
+    learner.log.close()

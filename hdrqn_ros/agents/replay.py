@@ -50,11 +50,12 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Dict, Optional
+from typing import Callable, Dict, NamedTuple, Optional
 
 import numpy as np
+import torch
 
-__all__ = ["Episode", "EpisodeReplay", "SequenceBatch"]
+__all__ = ["Episode", "EpisodeReplay", "SequenceBatch", "ReplaySamples"]
 
 
 def _owned(a: np.ndarray) -> np.ndarray:
@@ -177,9 +178,47 @@ class SequenceBatch:
     episode_index: np.ndarray
     start: np.ndarray
 
-    @property
-    def lengths(self) -> np.ndarray:
-        return self.valid.sum(axis=1)
+    def samples(self, obs: np.ndarray, device: torch.device | str = "cpu") -> "ReplaySamples":
+        """The window as the Double DQN target reads it: ``obs`` (the network input built
+        from it, ``(B, n + 1, ...)``) and the fields ``action``, ``reward``, ``discount``,
+        ``terminal`` (and ``next_invalid`` when stored) as tensors on ``device``."""
+        f = self.fields
+        invalid = f.get("next_invalid")
+        return ReplaySamples(
+            obs=torch.as_tensor(obs, device=device),
+            action=torch.as_tensor(f["action"], device=device).long(),
+            reward=torch.as_tensor(f["reward"], device=device).float(),
+            discount=torch.as_tensor(f["discount"], device=device).float(),
+            terminal=torch.as_tensor(f["terminal"], device=device).float(),
+            mask=torch.as_tensor(self.loss_mask, device=device),
+            next_invalid=None if invalid is None else torch.as_tensor(invalid, device=device).long(),
+        )
+
+
+class ReplaySamples(NamedTuple):
+    """A minibatch of ``B`` windows of ``n`` steps as one Double DQN update reads it
+    (tensors on the controller's device; every per-step field is ``(B, n)``):
+
+    * ``obs``: ``(B, n + 1, ...)`` network inputs; ``obs[:, t]`` is step t's input s_t,
+      ``obs[:, t + 1]`` its next input s_{t+1}.
+    * ``action``: int64, the action (or subgoal) taken at step t.
+    * ``reward``: float32, r_t (the sub-controller's intrinsic reward, the meta-controller's
+      summed extrinsic reward over the option, a flat agent's classical reward).
+    * ``discount``: float32, gamma, or gamma**k after an option of k steps (SMDP).
+    * ``terminal``: float32, 1 where s_{t+1} is not bootstrapped from, else 0.
+    * ``mask``: bool, the steps that carry the loss (:attr:`SequenceBatch.loss_mask`);
+      padding and burn-in steps are False.
+    * ``next_invalid``: int64 or None: a choice s_{t+1} may not take (the subgoal the
+      meta-controller stands on), -1 for none; left out of the target's argmax.
+    """
+
+    obs: torch.Tensor
+    action: torch.Tensor
+    reward: torch.Tensor
+    discount: torch.Tensor
+    terminal: torch.Tensor
+    mask: torch.Tensor
+    next_invalid: Optional[torch.Tensor]
 
 
 class EpisodeReplay:
@@ -323,3 +362,18 @@ class EpisodeReplay:
             loss_mask[b, 0 if from_segment_start else max(0, w - int(loss_len)) : w] = True
 
         return SequenceBatch(frames, fields, seg_data, valid, loss_mask, ep_idx, starts)
+
+    def sample_transitions(
+        self,
+        batch_size: int,
+        seq_len: int,
+        build_input: Callable[[SequenceBatch], np.ndarray],
+        device: torch.device | str = "cpu",
+        rng: Optional[np.random.Generator] = None,
+        loss_len: Optional[int] = None,
+    ) -> ReplaySamples:
+        """:meth:`sample` windows, as typed :class:`ReplaySamples` on ``device``; the network
+        input ``obs`` is ``build_input(window)`` (e.g. each frame stacked with its option's
+        subgoal image)."""
+        batch = self.sample(batch_size, seq_len, rng=rng, loss_len=loss_len)
+        return batch.samples(build_input(batch), device)

@@ -1,8 +1,10 @@
 """``learner`` node: assembles transitions from the graph, owns replay, trains, publishes weights.
 
-For each environment group (a namespace in ``groups``) a :class:`GroupAssembler` joins
-the group's messages by step key into the same :class:`StepRecord` rows the in-process
-rollout produces, and the same :class:`EpisodeRecorder` turns them into replay episodes.
+For each environment group (a namespace in ``groups``) a
+:class:`~hdrqn_ros.protocol.group.GroupAssembler` joins the group's messages by step key
+into the same :class:`StepRecord` rows the in-process rollout produces, and the same
+:class:`EpisodeRecorder` turns them into replay episodes (recorded, when ``record``, by
+:class:`~hdrqn_ros.recording.received.GraphRecorder`).
 A training thread runs the :class:`~hdrqn_ros.training.learner.Learner` (one update per
 controller every ``update_every`` env steps), publishes weights every ``weights_every``
 updates on latched topics, and checkpoints. Each group's environment may run
@@ -17,8 +19,6 @@ import json
 import queue
 import threading
 import time
-from collections import deque
-from contextlib import suppress
 from pathlib import Path
 
 import numpy as np
@@ -27,11 +27,11 @@ from hdrqn_ros.agents.weights import encode_weights
 from hdrqn_ros.config import build_config, parse_set
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
 from hdrqn_ros.protocol import wire as P
-from hdrqn_ros.protocol.assembly import TransitionAssembler
-from hdrqn_ros.recording.bag import BagError
-from hdrqn_ros.recording.transitions import BagRecorder, read_episodes
+from hdrqn_ros.protocol.group import GroupAssembler
+from hdrqn_ros.recording.received import GraphRecorder, earlier_recordings
+from hdrqn_ros.recording.transitions import read_episodes
 from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, check_algo, env_kwargs, run_node
-from hdrqn_ros.training.learner import EVAL_SEED_OFFSET, Learner, evaluate
+from hdrqn_ros.training.learner import Learner
 
 PARAMETERS = {**ENV_DEFAULTS, "config": "", "overrides": [""], "episodes": 1000, "run_dir": "runs/graph",
               "groups": ["/"], "resume": False, "weights_every": 25, "credit_window": 20, "max_owed_updates": 2,
@@ -56,101 +56,6 @@ With no groups (``groups: [""]``) the learner trains offline only: ``offline_upd
 
 EPISODE_QUEUE = 256
 """Finished episodes waiting for the training thread (bounded; the credit keeps it short)."""
-
-
-class GroupAssembler(TransitionAssembler):
-    """A :class:`TransitionAssembler` fed by the learner node's subscriptions to one group,
-    which also publishes the group's ``learner_credit`` and may record what it receives."""
-
-    def __init__(self, node, namespace: str, learner: Learner, episodes: "queue.Queue", log=None,
-                 recorder: "GraphRecorder | None" = None):
-        super().__init__(namespace, learner.cfg, learner.agent.num_subgoals, self._acknowledge, node=node, log=log)
-        self.episodes, self.graph_recorder = episodes, recorder
-        self.acked_episodes = self.acked_steps = 0
-        self.heard = False  # no credit before the group's first env_step: its start would go unseen
-        self.last_credit: tuple | None = None
-        inputs = self.inputs()
-        conns = recorder.add_group(namespace, list(inputs)) if recorder is not None else {}
-        for name, (type_name, handler) in inputs.items():
-            if name in conns:
-                handler = recorder.recording(conns[name], handler)
-            node.create_subscription(type_name, self.topic(name), handler, P.STEP_QOS)
-        self.credit_pub = node.create_publisher(P.FLOATS, self.topic(P.CREDIT), LATCHED_QOS)
-
-    def _acknowledge(self, *episode) -> None:
-        """A finished episode: make its messages durable in the recording (when recording),
-        count it as acknowledged, and queue it for replay."""
-        if self.graph_recorder is not None and self.graph_recorder.sync():
-            self.acked_episodes += 1
-            self.acked_steps += episode[-1].steps
-        self.episodes.put(episode)
-
-    def received(self, step: dict) -> None:
-        super().received(step)
-        self.heard = True
-
-    def stats(self) -> dict:
-        """The assembler's counters, plus ``acked_episodes``/``acked_steps``: the episodes
-        (and their transitions) already durable in the learner's bag when recording."""
-        return {**super().stats(), "acked_episodes": self.acked_episodes, "acked_steps": self.acked_steps}
-
-    def publish_credit(self, window: int, owed_ok: bool, eps: tuple[float, float], epoch: float,
-                       force: bool = False) -> None:
-        """Publish ``learner_credit`` when the credit or the epsilons changed (or ``force``)."""
-        credit = self.env_steps_seen + window if owed_ok and self.heard else self.env_steps_seen
-        values = (credit, round(eps[0], 4), round(eps[1], 4))
-        if values == self.last_credit and not force:
-            return
-        self.last_credit = values
-        self.credit_pub.publish(P.make_record(self.node, P.FLOATS, P.CREDIT_FIELDS, [*values, self.last_key, epoch]))
-
-
-class GraphRecorder:
-    """Writes the messages the learner receives to a bag, as received (CDR bytes)."""
-
-    def __init__(self, node, path: str, cfg, split_mb: float):
-        if split_mb <= 0:
-            raise NodeConfigError(f"record_split_mb must be > 0, got {split_mb}")
-        target, k = Path(path), 0
-        while target.exists():  # a restarted learner: keep the earlier bag, start a new one
-            k += 1
-            target = Path(f"{path}-restart{k}")
-        self.node = node
-        self.bag = BagRecorder(target, cfg, "learner node", split_bytes=int(split_mb * 2**20))
-        self.failed = False
-        node.logger.info("recording the groups' messages to %s", target)
-
-    def add_group(self, namespace: str, topics: list[str]) -> dict[str, int]:
-        return self.bag.add_group(namespace, topics)
-
-    def sync(self) -> bool:
-        """End the current chunk and hand it to the OS, so a killed learner loses none of the
-        messages received so far (``hdrqn bag repair`` keeps complete chunks). False when
-        recording has stopped."""
-        if self.failed:
-            return False
-        try:
-            self.bag.sync()
-        except BagError as exc:
-            self.failed = True
-            self.node.logger.error("recording stopped: %s", exc)
-        return not self.failed
-
-    def recording(self, connection: int, handler):
-        def record_then_handle(msg) -> None:
-            if not self.failed:
-                try:
-                    self.bag.write(connection, self.node.to_cdr(msg))
-                except BagError as exc:  # disk full, permissions: stop recording, keep training
-                    self.failed = True
-                    self.node.logger.error("recording stopped: %s", exc)
-            handler(msg)
-        return record_then_handle
-
-    def close(self) -> None:
-        if not self.failed:
-            with suppress(BagError):
-                self.bag.close()
 
 
 class LearnerNode:
@@ -178,8 +83,18 @@ class LearnerNode:
         bags, namespaces = [b for b in p["bags"] if b], [ns for ns in p["groups"] if ns]
         if not bags and not namespaces:
             raise NodeConfigError("nothing to learn from: give environment groups (groups) or bags (bags)")
-        self.prefilled = self._prefill(bags)
-        self.recovered = self._recover(p["record"]) if resume and p["record"] else (0, 0)
+        if p["record"] and p["record_split_mb"] <= 0:
+            raise NodeConfigError(f"record_split_mb must be > 0, got {p['record_split_mb']}")
+        self.prefilled = self._fill(bags)
+        if bags:
+            node.logger.info("replay filled from %d bag(s): %d episodes, %d steps", len(bags), *self.prefilled)
+            if not self.prefilled[0]:
+                raise NodeConfigError(f"no complete episode for {cfg.algo} in {bags}")
+        recorded = earlier_recordings(p["record"], node.logger) if resume and p["record"] else []
+        self.recovered = self._fill(recorded)
+        if recorded:
+            node.logger.info("recovered %d acknowledged episodes (%d transitions) from %s", *self.recovered,
+                             ", ".join(recorded))
         self.offline_updates = p["offline_updates"]
         if not namespaces and not self.offline_updates:
             self.offline_updates = max(1, 10 * self.prefilled[1] // cfg.update_every)
@@ -190,9 +105,7 @@ class LearnerNode:
                             for c in self.learner.agent.controllers}
         self.status_pub = node.create_publisher(P.STRING, P.STATUS, LATCHED_QOS)
         self.epoch = time.time()
-        self.recent: deque = deque(maxlen=100)
-        self.start = time.perf_counter()
-        self.start_steps = self.learner.env_steps
+        self.learner.begin()
         self.finished = False
         self.exit_code = 0
         self.summary: dict | None = None
@@ -204,49 +117,22 @@ class LearnerNode:
         self.thread = threading.Thread(target=self._train, name="learner-train", daemon=True)
         self.thread.start()
 
-    def _prefill(self, bags: list[str]) -> tuple[int, int]:
-        """Fill the replay from ``bags``; returns (episodes, steps)."""
+    def _fill(self, bags: list[str]) -> tuple[int, int]:
+        """Fill the replay from ``bags`` (not counted as this run's episodes); returns (episodes, steps)."""
         if not bags:
             return 0, 0
         items = read_episodes(bags, self.learner.cfg, self.learner.agent.num_subgoals, logger=self.node.logger)
-        episodes, steps = self.learner.prefill(items)
-        self.node.logger.info("replay filled from %d bag(s): %d episodes, %d steps", len(bags), episodes, steps)
-        if not episodes:
-            raise NodeConfigError(f"no complete episode for {self.learner.cfg.algo} in {bags}")
-        return episodes, steps
-
-    def _recover(self, record: str) -> tuple[int, int]:
-        """A resumed learner refills its replay with the episodes its earlier lives recorded
-        (``record``, ``record-restart<k>``; a killed recorder's bag is repaired first), so
-        no acknowledged transition is lost. Returns (episodes, steps)."""
-        from hdrqn_ros.recording.bag import repair_bag
-
-        bags, k = [], 0
-        while Path(path := record if k == 0 else f"{record}-restart{k}").exists():
-            report = repair_bag(path)
-            if report.repaired:
-                self.node.logger.warning("repaired %s: %d messages recovered, %d bytes dropped", path,
-                                         report.messages_recovered, report.bytes_dropped)
-            bags.append(path)
-            k += 1
-        if not bags:
-            return 0, 0
-        items = read_episodes(bags, self.learner.cfg, self.learner.agent.num_subgoals, logger=self.node.logger)
-        episodes, steps = self.learner.prefill(items)
-        self.node.logger.info("recovered %d acknowledged episodes (%d transitions) from %s", episodes, steps,
-                              ", ".join(bags))
-        return episodes, steps
+        return self.learner.store(items, counted=False)
 
     # -- the training thread ---------------------------------------------------------------------
     def _train(self) -> None:
         learner, cfg = self.learner, self.learner.cfg
         counted = {id(g): g.transitions for g in self.groups}
-        next_ckpt = learner._next_multiple(cfg.checkpoint_every)
         try:
             for i in range(1, self.offline_updates + 1):
                 if self._stop.is_set():
                     return
-                learner._update(offline=True)
+                learner.update_once(offline=True)
                 if i % self.params["weights_every"] == 0:
                     self._publish_weights()
             if not self.groups:
@@ -257,9 +143,8 @@ class LearnerNode:
                     learner.add_steps(g.transitions - counted[id(g)])
                     counted[id(g)] = g.transitions
                 self._store_episodes()
-                if learner.episodes >= next_ckpt:
+                if learner.due("checkpoint"):
                     learner.save()
-                    next_ckpt = learner._next_multiple(cfg.checkpoint_every)
                 if learner.owed_updates:
                     before = learner.agent.sub.updates
                     learner.run_owed_updates(limit=1)
@@ -280,13 +165,12 @@ class LearnerNode:
         learner = self.learner
         while learner.episodes < learner.cfg.episodes:
             try:
-                _, sub_ep, meta_ep, stats = self.episodes.get_nowait()
+                item = self.episodes.get_nowait()
             except queue.Empty:
                 return
             eps = learner.epsilons()
-            learner.add_episode(sub_ep, meta_ep)
-            learner.log_episode(stats, *eps, time.perf_counter() - self.start)
-            self.recent.append(stats)
+            learner.store([item])
+            learner.log_episode(item[-1], *eps)
 
     def _grant_credit(self, force: bool = False) -> None:
         learner = self.learner
@@ -303,32 +187,22 @@ class LearnerNode:
     def _finish(self) -> None:
         learner, cfg = self.learner, self.learner.cfg
         learner.save()
-        wall = time.perf_counter() - self.start
-        final = None
-        if self.params["evaluate"] and cfg.eval_every:
-            final = evaluate(learner.agent, cfg, cfg.eval_episodes, cfg.seed + EVAL_SEED_OFFSET)
-        steps = learner.env_steps - self.start_steps
-        self.summary = {"algo": cfg.algo, "env": cfg.env, "episodes": learner.episodes,
-                        "env_steps": learner.env_steps, "wall_s": round(wall, 1),
-                        "env_steps_per_s": round(steps / max(wall, 1e-9), 1),
-                        "updates": learner.agent.sub.updates,
-                        "train_success_last100": float(np.mean([s.success for s in self.recent])) if self.recent
-                        else None, "final_eval": final, "groups": {g.ns or "/": g.stats() for g in self.groups},
-                        "prefilled": {"episodes": self.prefilled[0], "steps": self.prefilled[1]},
-                        "recovered": {"episodes": self.recovered[0], "steps": self.recovered[1]}}
-        (learner.run_dir / "summary.json").write_text(json.dumps(self.summary, indent=2))
+        wall = learner.wall_s  # the training's, without the final evaluation
+        final = learner.evaluate(log=False) if self.params["evaluate"] and cfg.eval_every else None
+        self.summary = learner.summary(final, wall, groups={g.ns or "/": g.stats() for g in self.groups},
+                                       prefilled={"episodes": self.prefilled[0], "steps": self.prefilled[1]},
+                                       recovered={"episodes": self.recovered[0], "steps": self.recovered[1]})
         self._status()
         self.node.logger.info("done: %s", json.dumps(self.summary))
 
     # -- status ------------------------------------------------------------------------------------
     def status(self) -> dict:
         learner = self.learner
-        wall = time.perf_counter() - self.start
-        eps = learner.epsilons()
+        eps, recent = learner.epsilons(), learner.recent
         return {"episodes": learner.episodes, "target_episodes": learner.cfg.episodes,
                 "env_steps": learner.env_steps, "updates": learner.agent.sub.updates,
-                "steps_per_s": round((learner.env_steps - self.start_steps) / max(wall, 1e-9), 1),
-                "success_last100": round(float(np.mean([s.success for s in self.recent])), 3) if self.recent else None,
+                "steps_per_s": round((learner.env_steps - learner.start_steps) / max(learner.wall_s, 1e-9), 1),
+                "success_last100": round(float(np.mean([s.success for s in recent])), 3) if recent else None,
                 "eps_sub": round(eps[0], 3), "eps_meta": round(eps[1], 3), "finished": self.summary is not None,
                 "groups": {g.ns or "/": g.stats() for g in self.groups}}
 

@@ -6,7 +6,9 @@ segment per option with its subgoal image (windows never cross an option boundar
 ``terminal`` is the record's ``sub_terminal`` (:func:`~hdrqn_ros.critic.sub_controller_terminal`,
 applied alike by the in-process rollout and the graph's assembler).
 Meta-controller episode: one step per option; frames are the meta inputs at each decision
-plus the input after the last option; ``reward`` is the option's summed extrinsic reward.
+plus the input after the last option; each step's reward, discount, terminal and
+``next_invalid`` are :func:`~hdrqn_ros.agents.controller.meta_transition` (defined beside
+the update that reads them, :meth:`~hdrqn_ros.agents.controller.Controller.update`).
 Statistics also count the steps spent at each subgoal's place and log every option as
 :class:`OptionOutcome` (thesis figure 4.13b and the phase-1 table of section 4.5).
 """
@@ -17,6 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hdrqn_ros.agents.controller import meta_transition
 from hdrqn_ros.agents.policy import StepRecord
 from hdrqn_ros.agents.replay import Episode
 
@@ -107,11 +110,14 @@ class EpisodeRecorder:
                 k = int(rec.option_steps[i])
                 ep.option_log.append(OptionOutcome(ep.option_start, int(rec.subgoal[i]), k,
                                                    ep.place == int(rec.subgoal[i])))
+                meta_r, discount, terminal, next_invalid = meta_transition(
+                    rec.option_extrinsic[i], env.terminated[i], k, env.at_subgoal[i], self.meta_gamma,
+                    self.smdp_discount)
                 ep.meta_action.append(rec.subgoal[i])
-                ep.meta_reward.append(rec.option_extrinsic[i])
-                ep.meta_terminal.append(env.terminated[i])
-                ep.meta_discount.append(self.meta_gamma ** k if self.smdp_discount else self.meta_gamma)
-                ep.meta_next_invalid.append(env.at_subgoal[i])  # the place the next decision starts from
+                ep.meta_reward.append(meta_r)
+                ep.meta_terminal.append(terminal)
+                ep.meta_discount.append(discount)
+                ep.meta_next_invalid.append(next_invalid)
             if env.done[i]:
                 finished.append(self._close(i, ep, rec))
                 self.open[i] = _Open()

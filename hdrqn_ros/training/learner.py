@@ -3,8 +3,10 @@ the agent and its replay, epsilon schedules, one update of each controller every
 ``update_every`` env steps, greedy evaluations, checkpoints and metrics."""
 from __future__ import annotations
 
+import json
 import time
-from collections.abc import Callable, Iterator
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
@@ -14,7 +16,6 @@ import torch
 import yaml
 
 from hdrqn_ros.agents.algorithms import Agent
-from hdrqn_ros.agents.replay import Episode
 from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
@@ -98,7 +99,18 @@ def summarise(rows: list[EpisodeStats]) -> dict:
 
 
 class Learner:
-    """Learns ``cfg.algo`` from finished episodes into ``run_dir`` (checkpoints, CSV, TensorBoard)."""
+    """Learns ``cfg.algo`` from finished episodes into ``run_dir`` (checkpoints, CSV, TensorBoard).
+
+    The surface a training loop uses (the in-process :class:`~hdrqn_ros.training.trainer.Trainer`,
+    the :class:`~hdrqn_ros.training.offline.OfflineTrainer`, the learner node): :meth:`store`
+    episodes in replay, count env steps (:meth:`add_steps`) and run the updates they are owed
+    (:meth:`run_owed_updates`, or :meth:`update_once`), :meth:`log_episode`; :meth:`begin`
+    the loop, ask whether an evaluation or a checkpoint is :meth:`due`, :meth:`evaluate`,
+    :meth:`save`, and end with :meth:`summary`.
+    """
+
+    EVAL_STEP = "episode"
+    """TensorBoard's x axis for evaluations."""
 
     def __init__(self, cfg: TrainConfig, run_dir: str | Path, resume: bool = False, progress: bool = True,
                  tensorboard: bool = True):
@@ -125,7 +137,9 @@ class Learner:
         self.log = MetricsLog(self.run_dir, tensorboard=tensorboard, subgoal_names=self.subgoal_names,
                               options=self.agent.meta is not None)
         self.last_eval: dict | None = None
+        self.recent: deque[EpisodeStats] = deque(maxlen=100)  # the last training episodes
         self._pending_updates = 0
+        self.begin()
         self._meta_thread = ThreadPoolExecutor(1, thread_name_prefix="meta-update") if cfg.parallel_updates else None
 
     # -- schedules -----------------------------------------------------------------------
@@ -139,10 +153,6 @@ class Learner:
         if self.meta_begin is None:
             self.meta_begin = self.env_steps
         return eps_sub, cfg.meta.epsilon.value(self.env_steps - self.meta_begin)
-
-    def _learning(self, ctrl, offline: bool = False) -> bool:
-        """Enough data for ``ctrl`` to update (offline: no ``learning_starts`` warm-up)."""
-        return len(ctrl.replay) >= ctrl.cfg.batch_size and (offline or self.env_steps >= self.cfg.learning_starts)
 
     # -- checkpoints ---------------------------------------------------------------------
     def _resume(self) -> None:
@@ -176,35 +186,36 @@ class Learner:
             self.save()
             raise
 
-    # -- learning --------------------------------------------------------------------------
-    def prefill(self, items) -> tuple[int, int]:
-        """Store recorded ``(group, sub Episode, meta Episode or None, EpisodeStats)`` items
-        in replay without counting them as this run's episodes; returns (episodes, steps)."""
+    # -- replay ------------------------------------------------------------------------------
+    def store(self, items: Iterable[tuple], counted: bool = True) -> tuple[int, int]:
+        """The one way into replay: store ``(group, sub Episode, meta Episode or None,
+        EpisodeStats)`` items (the oldest are dropped beyond the replay capacity).
+        ``counted``: they are this run's episodes (``episodes`` grows; env steps are counted
+        by :meth:`add_steps` as they are played); otherwise, e.g. episodes recorded earlier,
+        they only fill the replay. Returns (episodes, steps) stored."""
         episodes = steps = 0
+        sub, meta = self.agent.sub.replay, self.agent.meta.replay if self.agent.meta is not None else None
         for _, sub_ep, meta_ep, stats in items:
-            self.agent.sub.replay.add(sub_ep)
+            sub.add(sub_ep)
             if meta_ep is not None:
-                self.agent.meta.replay.add(meta_ep)
+                meta.add(meta_ep)
             episodes, steps = episodes + 1, steps + stats.steps
+        if counted:
+            self.episodes += episodes
         return episodes, steps
 
-    def add_episode(self, sub_ep: Episode, meta_ep: Episode | None) -> None:
-        """Store a finished episode in replay."""
-        self.agent.sub.replay.add(sub_ep)
-        if meta_ep is not None:
-            self.agent.meta.replay.add(meta_ep)
-        self.episodes += 1
-
-    def log_episode(self, stats: EpisodeStats, eps_sub: float, eps_meta: float, wall_s: float,
-                    episode: int | None = None) -> None:
-        """One row of ``train.csv`` / TensorBoard (and of ``visits.csv``, ``options.csv``) for a finished episode."""
+    def log_episode(self, stats: EpisodeStats, eps_sub: float, eps_meta: float, episode: int | None = None) -> None:
+        """One row of ``train.csv`` / TensorBoard (and of ``visits.csv``, ``options.csv``) for
+        a finished episode; it also joins the last 100 (``train_success_last100``)."""
         episode = self.episodes if episode is None else episode
+        self.recent.append(stats)
         self.log.subgoals(episode, stats.visits, stats.option_log)
         self.log.train({"episode": episode, "env_steps": self.env_steps,
                         "steps": stats.steps, "reward": stats.classical, "extrinsic": stats.extrinsic,
                         "intrinsic": stats.intrinsic, "success": int(stats.success), "options": stats.options,
-                        "eps_sub": round(eps_sub, 4), "eps_meta": round(eps_meta, 4), "wall_s": round(wall_s, 2)})
+                        "eps_sub": round(eps_sub, 4), "eps_meta": round(eps_meta, 4), "wall_s": round(self.wall_s, 2)})
 
+    # -- updates ---------------------------------------------------------------------------
     def add_steps(self, n: int) -> None:
         """Count ``n`` env steps; every ``update_every`` of them is owed one update."""
         self.env_steps += n
@@ -215,35 +226,99 @@ class Learner:
         return self._pending_updates // self.cfg.update_every
 
     def run_owed_updates(self, limit: int | None = None) -> int:
-        """Run the updates owed (at most ``limit``); returns how many ran."""
+        """Run the updates owed (at most ``limit``) with :meth:`update_once`; returns how many ran."""
         n = self.owed_updates if limit is None else min(limit, self.owed_updates)
         for _ in range(n):
             self._pending_updates -= self.cfg.update_every
-            self._update()
+            self.update_once()
         return n
 
-    def _update(self, offline: bool = False) -> None:
-        """One update of each controller that has enough data; the meta update runs in a
-        second thread beside the sub update (torch releases the GIL in its kernels).
-        ``offline``: from prefilled replay, without the ``learning_starts`` warm-up."""
+    def update_once(self, offline: bool = False) -> None:
+        """One update (:meth:`~hdrqn_ros.agents.controller.Controller.update`) of each
+        controller whose turn it is:
+
+        * a controller learns once its replay holds ``batch_size`` episodes and, online,
+          after the ``learning_starts`` env steps of random play (``offline``: from replay
+          filled beforehand, at once);
+        * the meta-controller only in phase 2, after ``sub_only_episodes`` episodes (in
+          phase 1 it picks subgoals at random and does not learn).
+
+        The meta update runs in a second thread beside the sub update (torch releases the
+        GIL in its kernels) when ``parallel_updates``."""
         meta, sub = self.agent.meta, self.agent.sub
-        meta_due = meta is not None and self.episodes >= self.cfg.sub_only_episodes and self._learning(meta, offline)
+        phase2 = self.episodes >= self.cfg.sub_only_episodes
+        meta_due = meta is not None and phase2 and self._has_data(meta, offline)
         pending = self._meta_thread.submit(meta.update) if meta_due and self._meta_thread else None
-        if self._learning(sub, offline):
+        if self._has_data(sub, offline):
             sub.update()
         if pending is not None:
             pending.result()
         elif meta_due:
             meta.update()
 
+    def _has_data(self, ctrl, offline: bool) -> bool:
+        return len(ctrl.replay) >= ctrl.cfg.batch_size and (offline or self.env_steps >= self.cfg.learning_starts)
+
+    # -- the loop's schedule, evaluations, summary -----------------------------------------
+    def begin(self) -> None:
+        """A training loop starts: its clock and env-step count (for ``wall_s`` and rates),
+        and the next evaluation and checkpoint (:meth:`due`) after the episodes so far."""
+        self.started = time.perf_counter()
+        self.start_steps = self.env_steps
+        self._next_due = {what: self._next_multiple(self._every(what)) for what in ("eval", "checkpoint")}
+
+    def due(self, what: str) -> bool:
+        """Whether the ``eval`` (every ``eval_every`` episodes, 0: never) or ``checkpoint``
+        (every ``checkpoint_every``) is due now; once it is, the next one is scheduled."""
+        mark = self._next_due[what]
+        if not mark or self.episodes < mark:
+            return False
+        self._next_due[what] = self._next_multiple(self._every(what))
+        return True
+
+    def _every(self, what: str) -> int:
+        return {"eval": self.cfg.eval_every, "checkpoint": self.cfg.checkpoint_every}[what]
+
     def _next_multiple(self, every: int) -> int:
         return (self.episodes // every + 1) * every if every else 0
 
-    def _evaluate(self, start: float) -> dict:
+    @property
+    def wall_s(self) -> float:
+        """Seconds since :meth:`begin`."""
+        return time.perf_counter() - self.started
+
+    def evaluate(self, log: bool = True) -> dict:
+        """Greedy evaluation on the held-out episodes (``cfg.eval_episodes``, seed
+        ``seed + EVAL_SEED_OFFSET``); kept as ``last_eval`` and, with ``log``, written to
+        ``eval.csv`` / TensorBoard (x axis :attr:`EVAL_STEP`). Returns the summary."""
         result = evaluate(self.agent, self.cfg, self.cfg.eval_episodes, self.cfg.seed + EVAL_SEED_OFFSET)
         self.last_eval = {**result, "at": self.episodes}
-        self.log.eval({"episode": self.episodes, "env_steps": self.env_steps, **result,
-                       "wall_s": round(time.perf_counter() - start, 2), "updates": self.agent.sub.updates})
+        if log:
+            self.log.eval({"episode": self.episodes, "env_steps": self.env_steps, **result,
+                           "wall_s": round(self.wall_s, 2), "updates": self.agent.sub.updates}, step_key=self.EVAL_STEP)
         return result
+
+    def summary(self, final_eval: dict | None, wall_s: float | None = None, **extra) -> dict:
+        """The run's summary, written to ``summary.json``: algo, env, episodes, env steps
+        (and their rate over ``wall_s``, default the time since :meth:`begin`), updates, the
+        success of the last 100 training episodes, then ``extra``, then ``final_eval``."""
+        wall = self.wall_s if wall_s is None else wall_s
+        summary = {"algo": self.cfg.algo, "env": self.cfg.env, "episodes": self.episodes,
+                   "env_steps": self.env_steps, "wall_s": round(wall, 1),
+                   "env_steps_per_s": round((self.env_steps - self.start_steps) / max(wall, 1e-9), 1),
+                   "updates": self.agent.sub.updates,
+                   "train_success_last100": float(np.mean([r.success for r in self.recent])) if self.recent else None,
+                   **extra, "final_eval": final_eval}
+        (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+        return summary
+
+    def progress_bar(self, total: int, unit: str, desc: str, initial: int = 0):
+        """A tqdm bar when ``progress``, else None."""
+        if not self.progress:
+            return None
+        from tqdm import tqdm
+
+        return tqdm(total=total, initial=initial, unit=unit, dynamic_ncols=True, desc=desc)
+
 
 __all__ = ["Learner", "evaluate", "play", "summarise", "build_agent", "load_trained_agent", "EVAL_SEED_OFFSET"]

@@ -4,19 +4,18 @@ from __future__ import annotations
 
 import json
 import sys
-import time
-from collections import deque
 from contextlib import suppress
 from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
+from hdrqn_ros.agents.policy import StepRecord
 from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.episodes import EpisodeRecorder, EpisodeStats
-from hdrqn_ros.training.learner import EVAL_SEED_OFFSET, Learner, build_agent, evaluate, play
-from hdrqn_ros.training.rollout import Rollout, StepRecord
+from hdrqn_ros.training.learner import EVAL_SEED_OFFSET, Learner, play
+from hdrqn_ros.training.rollout import Rollout
 from hdrqn_ros.training.subgoals import option_table, option_table_markdown, read_options
 
 PHASE1_TRAINING_SHARE = 0.2
@@ -66,51 +65,34 @@ class Trainer(Learner):
                     self.save()
                 raise
         self.add_steps(cfg.num_envs)
-        finished = []
-        for _, sub_ep, meta_ep, stats in self.recorder.add(record):
-            if self.episodes >= cfg.episodes:
-                break
-            self.add_episode(sub_ep, meta_ep)
-            finished.append((stats, eps_sub, eps_meta))
+        done = self.recorder.add(record)[: max(0, cfg.episodes - self.episodes)]  # none beyond cfg.episodes
+        self.store(done)
         self.run_owed_updates()
-        return finished
+        return [(stats, eps_sub, eps_meta) for *_, stats in done]
 
     def run(self) -> dict:
         """Train until ``cfg.episodes``; returns the summary written to ``summary.json``."""
         cfg = self.cfg
-        start, start_steps = time.perf_counter(), self.env_steps
-        recent = deque(maxlen=100)
-        bar = None
-        if self.progress:
-            from tqdm import tqdm
-
-            bar = tqdm(total=cfg.episodes, initial=self.episodes, unit="ep", dynamic_ncols=True,
-                       desc=f"{cfg.algo} {cfg.env.split('/')[-1]}")
-        next_eval = self._next_multiple(cfg.eval_every)
-        next_ckpt = self._next_multiple(cfg.checkpoint_every)
+        self.begin()
+        bar = self.progress_bar(cfg.episodes, "ep", f"{cfg.algo} {cfg.env.split('/')[-1]}", initial=self.episodes)
         phase1_pending = (cfg.sub_only_episodes > 0 and self.agent.meta is not None
                           and not (self.run_dir / "phase1.json").exists())
         try:
             with self.saving_on_stop() as check_stop:
                 while self.episodes < cfg.episodes:
                     for i, (stats, eps_sub, eps_meta) in enumerate(finished := self.step()):
-                        recent.append(stats)
-                        self.log_episode(stats, eps_sub, eps_meta, time.perf_counter() - start,
-                                         episode=self.episodes - len(finished) + i + 1)
-                    if bar is not None and finished:
-                        bar.update(len(finished))
-                    if next_eval and self.episodes >= next_eval:
-                        self._evaluate(start)
-                        next_eval = self._next_multiple(cfg.eval_every)
-                    if self.episodes >= next_ckpt:
+                        self.log_episode(stats, eps_sub, eps_meta, episode=self.episodes - len(finished) + i + 1)
+                    if self.due("eval"):
+                        self.evaluate()
+                    if self.due("checkpoint"):
                         self.save()
-                        next_ckpt = self._next_multiple(cfg.checkpoint_every)
                     if phase1_pending and self.episodes >= cfg.sub_only_episodes:
                         self.phase1_report()
                         phase1_pending = False
                     if bar is not None and finished:
-                        rate = (self.env_steps - start_steps) / max(time.perf_counter() - start, 1e-9)
-                        post = {"steps/s": f"{rate:.0f}", "succ": f"{np.mean([r.success for r in recent]):.2f}",
+                        bar.update(len(finished))
+                        rate = (self.env_steps - self.start_steps) / max(self.wall_s, 1e-9)
+                        post = {"steps/s": f"{rate:.0f}", "succ": f"{np.mean([r.success for r in self.recent]):.2f}",
                                 "eps": f"{finished[-1][1]:.2f}/{finished[-1][2]:.2f}"}
                         if self.last_eval:
                             post["eval"] = f"{self.last_eval['success']:.2f}"
@@ -125,13 +107,8 @@ class Trainer(Learner):
         final = None
         if cfg.eval_every:
             done_now = self.last_eval is not None and self.last_eval.get("at") == self.episodes
-            final = self.last_eval if done_now else self._evaluate(start)
-        wall = time.perf_counter() - start
-        summary = {"algo": cfg.algo, "env": cfg.env, "episodes": self.episodes, "env_steps": self.env_steps,
-                   "wall_s": round(wall, 1), "env_steps_per_s": round((self.env_steps - start_steps) / max(wall, 1e-9), 1),
-                   "train_success_last100": float(np.mean([r.success for r in recent])) if recent else None,
-                   "final_eval": final}
-        (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+            final = self.last_eval if done_now else self.evaluate()
+        summary = self.summary(final)
         self.log.close()
         return summary
 
@@ -160,4 +137,4 @@ class Trainer(Learner):
         return report
 
 
-__all__ = ["Trainer", "evaluate", "build_agent"]
+__all__ = ["Trainer", "StepSink", "PHASE1_TRAINING_SHARE"]

@@ -1,0 +1,71 @@
+"""One environment group as the learner node reads it: a :class:`TransitionAssembler` fed
+by the node's subscriptions to the group's topics, which also grants the group's credit
+(``learner_credit``) and may record what it receives (through the port's node interface;
+no backend here)."""
+from __future__ import annotations
+
+import queue
+from typing import Protocol
+
+from hdrqn_ros.middleware.port import LATCHED_QOS
+from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol.assembly import TransitionAssembler
+from hdrqn_ros.training.learner import Learner
+
+
+class Recorder(Protocol):
+    """Where the group's messages are also written, as received (e.g. the learner's bag)."""
+
+    def add_group(self, namespace: str, topics: list[str]) -> dict[str, int]: ...
+
+    def recording(self, connection: int, handler): ...
+
+    def sync(self) -> bool: ...
+
+
+class GroupAssembler(TransitionAssembler):
+    """A :class:`TransitionAssembler` fed by the learner node's subscriptions to one group,
+    which also publishes the group's ``learner_credit`` and may record what it receives.
+    Finished episodes go to ``episodes`` (the training thread stores them in replay)."""
+
+    def __init__(self, node, namespace: str, learner: Learner, episodes: queue.Queue, log=None,
+                 recorder: Recorder | None = None):
+        super().__init__(namespace, learner.cfg, learner.agent.num_subgoals, self._acknowledge, node=node, log=log)
+        self.episodes, self.graph_recorder = episodes, recorder
+        self.acked_episodes = self.acked_steps = 0
+        self.heard = False  # no credit before the group's first env_step: its start would go unseen
+        self.last_credit: tuple | None = None
+        inputs = self.inputs()
+        conns = recorder.add_group(namespace, list(inputs)) if recorder is not None else {}
+        for name, (type_name, handler) in inputs.items():
+            if name in conns:
+                handler = recorder.recording(conns[name], handler)
+            node.create_subscription(type_name, self.topic(name), handler, P.STEP_QOS)
+        self.credit_pub = node.create_publisher(P.FLOATS, self.topic(P.CREDIT), LATCHED_QOS)
+
+    def _acknowledge(self, *episode) -> None:
+        """A finished episode: make its messages durable in the recording (when recording),
+        count it as acknowledged, and queue it for replay."""
+        if self.graph_recorder is not None and self.graph_recorder.sync():
+            self.acked_episodes += 1
+            self.acked_steps += episode[-1].steps
+        self.episodes.put(episode)
+
+    def received(self, step: dict) -> None:
+        super().received(step)
+        self.heard = True
+
+    def stats(self) -> dict:
+        """The assembler's counters, plus ``acked_episodes``/``acked_steps``: the episodes
+        (and their transitions) already durable in the learner's bag when recording."""
+        return {**super().stats(), "acked_episodes": self.acked_episodes, "acked_steps": self.acked_steps}
+
+    def publish_credit(self, window: int, owed_ok: bool, eps: tuple[float, float], epoch: float,
+                       force: bool = False) -> None:
+        """Publish ``learner_credit`` when the credit or the epsilons changed (or ``force``)."""
+        credit = self.env_steps_seen + window if owed_ok and self.heard else self.env_steps_seen
+        values = (credit, round(eps[0], 4), round(eps[1], 4))
+        if values == self.last_credit and not force:
+            return
+        self.last_credit = values
+        self.credit_pub.publish(P.make_record(self.node, P.FLOATS, P.CREDIT_FIELDS, [*values, self.last_key, epoch]))

@@ -31,7 +31,7 @@ from hdrqn_ros.graph import graph_processes, write_params
 from hdrqn_ros.middleware import BACKEND_ENV
 from hdrqn_ros.middleware.cyclone import CycloneMiddleware
 from hdrqn_ros.middleware.rclpy_backend import rclpy_available
-from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol import wire
 from hdrqn_ros.supervisor import ProcessSpec, Supervisor
 from hdrqn_ros.training.trainer import Trainer
 
@@ -63,7 +63,7 @@ def acting_rate(seconds: float, log_dir: Path, backend: str, groups: int = 1) ->
     try:
         node = mw.create_node("bench_probe")
         for i in range(groups):
-            node.create_subscription(P.FLOATS, f"/g{i}/{P.ENV_STEP}", lambda m: steps.append(time.perf_counter()))
+            node.create_subscription(wire.FLOATS, f"/g{i}/{wire.ENV_STEP}", lambda m: steps.append(time.perf_counter()))
         mw.spin(until=lambda: len(steps) > 200 * groups, timeout_s=120)  # warm-up: all nodes up, loops running
         n0, t0 = len(steps), time.perf_counter()
         mw.spin(timeout_s=seconds)

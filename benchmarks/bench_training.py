@@ -25,7 +25,7 @@ from hdrqn_ros.agents.algorithms import stack_subgoal
 from hdrqn_ros.agents.policy import epsilon_greedy
 from hdrqn_ros.config import build_config
 from hdrqn_ros.envs.registration import make_batch
-from hdrqn_ros.training.episodes import EpisodeRecorder
+from hdrqn_ros.training.episodes import EpisodeBuilder
 from hdrqn_ros.training.learner import build_agent
 from hdrqn_ros.training.rollout import Rollout
 from hdrqn_ros.training.trainer import Trainer
@@ -44,13 +44,13 @@ def _config(num_envs: int):
 def _prefill(agent, cfg, episodes: int = 64) -> None:
     """Fill both replays with random-policy episodes so updates sample real data."""
     rollout = Rollout(make_batch(ENV, 16, **cfg.env_kwargs), agent, seed=99)
-    rec = EpisodeRecorder(16, True, cfg.sub.gamma, cfg.meta.gamma)
+    builder = EpisodeBuilder(16, True, cfg.sub.gamma, cfg.meta.gamma)
     rng = np.random.default_rng(0)
     added = 0
     while added < episodes:
-        for _, sub_ep, meta_ep, _ in rec.add(rollout.step(1.0, 1.0, rng)):
-            agent.sub.replay.add(sub_ep)
-            agent.meta.replay.add(meta_ep)
+        for episode in builder.add(rollout.step(1.0, 1.0, rng)):
+            agent.sub.replay.add(episode.sub)
+            agent.meta.replay.add(episode.meta)
             added += 1
 
 

@@ -317,9 +317,9 @@ def test_every_learning_rate_and_discount_is_pinned(tmp_path):
             if ctrl is not None:  # what Adam really steps with
                 assert [g["lr"] for g in ctrl.optimizer.param_groups] == [want[0]], (algo, ctrl.name)
         # the discounts stored with each transition: in-process trainer and node graph learner
-        assert trainer.recorder.sub_gamma == np.float32(sub[1]), algo
+        assert trainer.builder.sub_gamma == np.float32(sub[1]), algo
         _, _, sub_gamma, meta_gamma, _ = TransitionAssembler("/", cfg, 2, print,
-                                                             logger=logging.getLogger("test")).recorder_args
+                                                             logger=logging.getLogger("test")).builder_args
         assert sub_gamma == sub[1], algo
         if meta is not None:
-            assert trainer.recorder.meta_gamma == meta_gamma == meta[1], algo
+            assert trainer.builder.meta_gamma == meta_gamma == meta[1], algo

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from hdrqn_ros.middleware.port import LATCHED_QOS
-from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol import wire
 from hdrqn_ros.supervisor import ProcessSpec, Supervisor
 
 from conftest import probe_middleware
@@ -33,8 +33,8 @@ def test_oversized_images_and_weights_are_dropped_without_growing_memory(domain,
     mw = probe_middleware(backend)
     try:
         node = mw.create_node("flooder")
-        obs_pub = node.create_publisher(P.IMAGE, "/observation", P.STEP_QOS)
-        weights_pub = node.create_publisher(P.BYTES, P.WEIGHTS["sub"], LATCHED_QOS)
+        obs_pub = node.create_publisher(wire.IMAGE, "/observation", wire.STEP_QOS)
+        weights_pub = node.create_publisher(wire.BYTES, wire.WEIGHTS["sub"], LATCHED_QOS)
         for pub in (obs_pub, weights_pub):
             mw.spin(until=lambda: pub.get_subscription_count() > 0, timeout_s=60)
             assert pub.get_subscription_count(), "the sub-controller never subscribed"
@@ -44,8 +44,8 @@ def test_oversized_images_and_weights_are_dropped_without_growing_memory(domain,
 
         def flood(rounds: int) -> None:
             for i in range(rounds):
-                obs_pub.publish(P.make_image(node, 10_000_000 * (i + 1), big_image, "map"))
-                weights_pub.publish(P.make_weights(node, big_weights, i))
+                obs_pub.publish(wire.make_image(node, 10_000_000 * (i + 1), big_image, "map"))
+                weights_pub.publish(wire.make_weights(node, big_weights, i))
                 mw.spin(timeout_s=0.05)
 
         flood(10)  # warm-up: DDS buffers and the allocator settle

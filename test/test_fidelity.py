@@ -10,7 +10,7 @@ import torch
 from hdrqn_ros.agents.algorithms import stack_subgoal
 from hdrqn_ros.config import build_config
 from hdrqn_ros.envs.registration import make_batch
-from hdrqn_ros.training.episodes import EpisodeRecorder
+from hdrqn_ros.training.episodes import EpisodeBuilder
 from hdrqn_ros.training.rollout import Rollout
 from hdrqn_ros.training.learner import build_agent
 
@@ -68,11 +68,11 @@ def test_v2_meta_frames_are_the_sub_lstm_state_at_each_option_end(meta_state):
         return meta_act(x, state)
 
     agent.meta.act = spy
-    recorder = EpisodeRecorder(2, True, cfg.sub.gamma, cfg.meta.gamma)
+    builder = EpisodeBuilder(2, True, cfg.sub.gamma, cfg.meta.gamma)
     rng = np.random.default_rng(0)
     finished = []
     while len(finished) < 6:
-        finished += recorder.add(rollout.step(0.0, 1.0, rng))
+        finished += builder.add(rollout.step(0.0, 1.0, rng))
 
     which = 1 if meta_state == "c" else 0
     options = 0

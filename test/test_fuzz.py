@@ -33,7 +33,7 @@ from hdrqn_ros.middleware.messages import DecodeError, decode, message_class
 from hdrqn_ros.middleware.port import ParameterError, RosArgsError
 from hdrqn_ros.middleware.ros_args import check_parameter_type, load_params_file, remap_and_resolve, split_ros_args
 from hdrqn_ros.nodes import nav
-from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.assembly import TransitionAssembler
 from hdrqn_ros.recording.bag import TYPESTORE, BagError, bag_summary, bag_topics, read_messages, repair_bag
 from hdrqn_ros.recording.transitions import (GROUP_TOPICS, BagRecorder, RosbagsMessages, bag_config, episode_summary,
@@ -67,10 +67,10 @@ def to_cdr(msg) -> bytes:
 
 
 # -- 1. message decoding ---------------------------------------------------------------------------
-SUBSCRIBED = [P.IMAGE, P.FLOATS, P.INTS, P.BYTES, nav.OCCUPANCY_GRID]
+SUBSCRIBED = [wire.IMAGE, wire.FLOATS, wire.INTS, wire.BYTES, nav.OCCUPANCY_GRID]
 """Every type a node subscribes to (observations and subgoal images; env_step, critic, credit,
 sub_state; action, subgoal; weights; the Nav2 costmap)."""
-PLAYED = [P.STRING, P.POSE_STAMPED, P.CLOCK_TYPE, nav.TWIST, "rcl_interfaces/msg/Log"]
+PLAYED = [wire.STRING, wire.POSE_STAMPED, wire.CLOCK_TYPE, nav.TWIST, "rcl_interfaces/msg/Log"]
 """Further types the bag player decodes (``Node.from_cdr``) from recordings."""
 HEADERS = [b"\x00\x01\x00\x00", b"\x00\x00\x00\x00", b"\x00\x07\x00\x00", b"\x00\x09\x00\x00"]
 """CDR little- and big-endian, XCDR2 little-endian, XCDR2 delimited."""
@@ -86,14 +86,14 @@ def sample_messages() -> dict[str, tuple[str, bytes]]:
     grid.data = np.arange(30, dtype=np.int8)
     pixels = np.arange(OBS * OBS * 3, dtype=np.uint32).astype(np.uint8).reshape(OBS, OBS, 3)
     step = [20_000_000, 10_000_000, 1, 0, 1, 2, 0.5, -0.1, 0, 0, -1, 0, 0, 0, 0, 1]
-    msgs = {"observation": (P.IMAGE, P.make_image(CY, 20_000_000, pixels, "map")),
-            "env_step": (P.FLOATS, P.make_record(CY, P.FLOATS, P.STEP_FIELDS, step)),
-            "action": (P.INTS, P.make_record(CY, P.INTS, P.ACTION_FIELDS, [10_000_000, 3])),
-            "sub_state": (P.FLOATS, P.make_state(CY, 10_000_000, np.linspace(-1, 1, 256))),
-            "weights": (P.BYTES, P.make_weights(CY, bytes(range(64)), 1234)),
+    msgs = {"observation": (wire.IMAGE, wire.make_image(CY, 20_000_000, pixels, "map")),
+            "env_step": (wire.FLOATS, wire.make_record(CY, wire.FLOATS, wire.STEP_FIELDS, step)),
+            "action": (wire.INTS, wire.make_record(CY, wire.INTS, wire.ACTION_FIELDS, [10_000_000, 3])),
+            "sub_state": (wire.FLOATS, wire.make_state(CY, 10_000_000, np.linspace(-1, 1, 256))),
+            "weights": (wire.BYTES, wire.make_weights(CY, bytes(range(64)), 1234)),
             "costmap": (nav.OCCUPANCY_GRID, grid),
-            "pose": (P.POSE_STAMPED, P.make_pose(CY, 20_000_000, "map", 1.0, 2.0)),
-            "string": (P.STRING, message_class(P.STRING)(data="status ok"))}
+            "pose": (wire.POSE_STAMPED, wire.make_pose(CY, 20_000_000, "map", 1.0, 2.0)),
+            "string": (wire.STRING, message_class(wire.STRING)(data="status ok"))}
     return {name: (type_name, to_cdr(msg)) for name, (type_name, msg) in msgs.items()}
 
 
@@ -102,14 +102,14 @@ SAMPLES = sample_messages()
 
 def read_as_node(name: str, msg):
     """What the node that subscribes to sample ``name``'s topic reads from ``msg``."""
-    readers = {"observation": lambda: P.read_image(msg, OBS, OBS),
-               "env_step": lambda: P.read_record(msg, P.STEP_FIELDS),
-               "action": lambda: P.check_index(P.read_record(msg, P.ACTION_FIELDS, np.int64)["action"],
+    readers = {"observation": lambda: wire.read_image(msg, OBS, OBS),
+               "env_step": lambda: wire.read_record(msg, wire.STEP_FIELDS),
+               "action": lambda: wire.check_index(wire.read_record(msg, wire.ACTION_FIELDS, np.int64)["action"],
                                                NUM_ACTIONS, "action"),
-               "sub_state": lambda: P.read_state(msg, 256),
-               "weights": lambda: (P.read_weights_version(msg), P.as_bytes(msg.data)),
+               "sub_state": lambda: wire.read_state(msg, 256),
+               "weights": lambda: (wire.read_weights_version(msg), wire.as_bytes(msg.data)),
                "costmap": lambda: nav.costmap_to_observation(msg, view_cells=5),
-               "pose": lambda: P.key_of(msg.header.stamp),
+               "pose": lambda: wire.key_of(msg.header.stamp),
                "string": lambda: msg.data}
     return readers[name]()
 
@@ -120,7 +120,7 @@ lying_bytes = st.lists(st.one_of(st.binary(max_size=24), st.sampled_from(WORDS))
 @settings(max_examples=300, **QUICK)
 @given(type_name=st.sampled_from(SUBSCRIBED + PLAYED), header=st.sampled_from(HEADERS) | st.binary(max_size=4),
        body=lying_bytes)
-@example(type_name=P.FLOATS, header=HEADERS[0], body=b"")  # an empty payload is not a default message
+@example(type_name=wire.FLOATS, header=HEADERS[0], body=b"")  # an empty payload is not a default message
 def test_arbitrary_bytes_decode_or_raise_decode_error(type_name, header, body):
     cls = message_class(type_name)
     try:
@@ -166,7 +166,7 @@ def test_mutated_samples_are_read_or_rejected_like_a_node_does(name, edits):
     assert any(kind != "cut" for kind, *_ in edits), "a truncated sample decoded"
     try:
         read_as_node(name, msg)
-    except (P.ProtocolError, nav.NavConfigError) as exc:
+    except (wire.ProtocolError, nav.NavConfigError) as exc:
         assert str(exc)
 
 
@@ -191,8 +191,8 @@ def _record_values(fields: tuple[str, ...]):
                      st.lists(any_float, max_size=len(fields) + 2))
 
 
-RECORDS = [(P.STEP_FIELDS, np.float64), (P.CRITIC_FIELDS, np.float64), (P.CREDIT_FIELDS, np.float64),
-           (P.ACTION_FIELDS, np.int64), (P.SUBGOAL_FIELDS, np.int64)]
+RECORDS = [(wire.STEP_FIELDS, np.float64), (wire.CRITIC_FIELDS, np.float64), (wire.CREDIT_FIELDS, np.float64),
+           (wire.ACTION_FIELDS, np.int64), (wire.SUBGOAL_FIELDS, np.int64)]
 
 
 @settings(max_examples=300, **QUICK)
@@ -200,22 +200,22 @@ RECORDS = [(P.STEP_FIELDS, np.float64), (P.CRITIC_FIELDS, np.float64), (P.CREDIT
 def test_records_with_random_values_are_read_or_rejected(data, which):
     fields, dtype = RECORDS[which]
     values = data.draw(_record_values(fields))
-    type_name = P.FLOATS if dtype == np.float64 else P.INTS
+    type_name = wire.FLOATS if dtype == np.float64 else wire.INTS
     if dtype == np.int64:
         values = [int(v) if math.isfinite(v) and abs(v) < 2**63 else -1 for v in values]
     msg = decode(message_class(type_name), to_cdr(message_class(type_name)(data=np.asarray(values, dtype))))
     try:
-        rec = P.read_record(msg, fields, dtype)
-    except P.ProtocolError as exc:
+        rec = wire.read_record(msg, fields, dtype)
+    except wire.ProtocolError as exc:
         assert str(exc)
         return
     assert list(rec) == list(fields) and [rec[f] for f in fields] == list(np.asarray(values, dtype))
-    assert all(math.isfinite(v) for v in rec.values()) and 0 < rec.get("key", 1) < P.MAX_KEY
+    assert all(math.isfinite(v) for v in rec.values()) and 0 < rec.get("key", 1) < wire.MAX_KEY
     for name, n in (("action", NUM_ACTIONS), ("subgoal", NUM_SUBGOALS)):
         if name in rec:
             try:
-                assert 0 <= P.check_index(rec[name], n, name) < n
-            except P.ProtocolError as exc:
+                assert 0 <= wire.check_index(rec[name], n, name) < n
+            except wire.ProtocolError as exc:
                 assert name in str(exc)
 
 
@@ -227,26 +227,26 @@ def test_records_with_random_values_are_read_or_rejected(data, which):
        size=st.sampled_from([OBS * OBS * 3, 2 * OBS * OBS * 3, 0]) | st.integers(0, 3 * OBS * OBS * 3),
        sec=st.integers(-2**31, 2**31 - 1), nanosec=st.integers(0, 2**32 - 1), rows=st.sampled_from([1, 2]))
 def test_images_with_random_fields_are_read_or_rejected(height, width, step, encoding, size, sec, nanosec, rows):
-    Image, Header, Time = (message_class(t) for t in (P.IMAGE, "std_msgs/msg/Header", "builtin_interfaces/msg/Time"))
+    Image, Header, Time = (message_class(t) for t in (wire.IMAGE, "std_msgs/msg/Header", "builtin_interfaces/msg/Time"))
     img = Image(header=Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id="map"), height=height, width=width,
                 encoding=encoding, is_bigendian=0, step=step, data=np.arange(size, dtype=np.uint32).astype(np.uint8))
     msg = decode(Image, to_cdr(img))
     try:
-        key, pixels = P.read_image(msg, OBS * rows, OBS)
-    except P.ProtocolError as exc:
+        key, pixels = wire.read_image(msg, OBS * rows, OBS)
+    except wire.ProtocolError as exc:
         assert "image" in str(exc)
         return
-    assert pixels.shape == (OBS * rows, OBS, 3) and 0 < key < P.MAX_KEY
+    assert pixels.shape == (OBS * rows, OBS, 3) and 0 < key < wire.MAX_KEY
     assert (pixels.reshape(-1) == np.arange(size, dtype=np.uint32).astype(np.uint8)).all()
 
 
 @settings(max_examples=100, **QUICK)
 @given(key=key_like, state=st.lists(any_float, min_size=250, max_size=260))
 def test_sub_states_with_random_values_are_read_or_rejected(key, state):
-    msg = decode(message_class(P.FLOATS), to_cdr(message_class(P.FLOATS)(data=np.asarray([key, *state]))))
+    msg = decode(message_class(wire.FLOATS), to_cdr(message_class(wire.FLOATS)(data=np.asarray([key, *state]))))
     try:
-        got_key, got = P.read_state(msg, 256)
-    except P.ProtocolError as exc:
+        got_key, got = wire.read_state(msg, 256)
+    except wire.ProtocolError as exc:
         assert str(exc)
         return
     assert got_key == key and got.shape == (256,) and got.dtype == np.float32 and np.isfinite(got).all()
@@ -261,10 +261,10 @@ def test_sub_states_with_random_values_are_read_or_rejected(key, state):
 def test_weights_version_labels_never_raise(labels, version):
     Dim, Layout = message_class("std_msgs/msg/MultiArrayDimension"), message_class("std_msgs/msg/MultiArrayLayout")
     layout = Layout(dim=[Dim(label=label, size=0, stride=0) for label in labels], data_offset=0)
-    msg = decode(message_class(P.BYTES), to_cdr(message_class(P.BYTES)(layout=layout, data=np.zeros(3, np.uint8))))
-    assert P.read_weights_version(msg) >= 0
+    msg = decode(message_class(wire.BYTES), to_cdr(message_class(wire.BYTES)(layout=layout, data=np.zeros(3, np.uint8))))
+    assert wire.read_weights_version(msg) >= 0
     if version < 10**18:
-        assert P.read_weights_version(P.make_weights(CY, b"xyz", version)) == version
+        assert wire.read_weights_version(wire.make_weights(CY, b"xyz", version)) == version
 
 
 @settings(max_examples=150, **QUICK)
@@ -289,7 +289,7 @@ STEP_NS = 10_000_000
 
 
 def _image(m, key: int, rows: int, fill: int):
-    return P.make_image(m, key, np.full((OBS * rows, OBS, 3), fill, np.uint8), "map")
+    return wire.make_image(m, key, np.full((OBS * rows, OBS, 3), fill, np.uint8), "map")
 
 
 def group_stream(episodes: list[list[dict]], m=RosbagsMessages()) -> list[tuple[str, object]]:
@@ -299,29 +299,29 @@ def group_stream(episodes: list[list[dict]], m=RosbagsMessages()) -> list[tuple[
     out, key, env_steps = [], 0, 0
     for e, ep in enumerate(episodes):
         key += STEP_NS
-        first = dict.fromkeys(P.STEP_FIELDS, 0)
+        first = dict.fromkeys(wire.STEP_FIELDS, 0)
         first.update(key=key, env_steps=env_steps, episode=e, at_subgoal=-1, decision_point=1)
-        out += [(P.ENV_STEP, P.make_record(m, P.FLOATS, P.STEP_FIELDS, [first[f] for f in P.STEP_FIELDS])),
-                (P.OBSERVATION, _image(m, key, 1, e)),
-                (P.CRITIC, P.make_record(m, P.FLOATS, P.CRITIC_FIELDS, [key, 0, 0, 1, -1]))]
+        out += [(wire.ENV_STEP, wire.make_record(m, wire.FLOATS, wire.STEP_FIELDS, [first[f] for f in wire.STEP_FIELDS])),
+                (wire.OBSERVATION, _image(m, key, 1, e)),
+                (wire.CRITIC, wire.make_record(m, wire.FLOATS, wire.CRITIC_FIELDS, [key, 0, 0, 1, -1]))]
         new_option = True
         for t, s in enumerate(ep, 1):
             prev = key
-            out.append((P.ACTION, P.make_record(m, P.INTS, P.ACTION_FIELDS, [prev, s["action"]])))
+            out.append((wire.ACTION, wire.make_record(m, wire.INTS, wire.ACTION_FIELDS, [prev, s["action"]])))
             if new_option:
-                out += [(P.SUBGOAL, P.make_record(m, P.INTS, P.SUBGOAL_FIELDS, [prev, s["subgoal"], 1])),
-                        (P.SUBGOAL_IMAGES, _image(m, prev, s["image_rows"], t))]
+                out += [(wire.SUBGOAL, wire.make_record(m, wire.INTS, wire.SUBGOAL_FIELDS, [prev, s["subgoal"], 1])),
+                        (wire.SUBGOAL_IMAGES, _image(m, prev, s["image_rows"], t))]
             if s["option_done"]:
-                out.append((P.SUB_STATE, P.make_state(m, prev, np.full(256, s["state"]))))
+                out.append((wire.SUB_STATE, wire.make_state(m, prev, np.full(256, s["state"]))))
             key += STEP_NS + s["key_gap"]
             env_steps += 1
             step = {"key": key, "prev_key": prev, "env_steps": env_steps, "episode": e, "t": t,
-                    **{f: s[f] for f in P.STEP_FIELDS if f in s}}
-            out += [(P.ENV_STEP, P.make_record(m, P.FLOATS, P.STEP_FIELDS, [step.get(f, 0) for f in P.STEP_FIELDS])),
-                    (P.CRITIC, P.make_record(m, P.FLOATS, P.CRITIC_FIELDS,
+                    **{f: s[f] for f in wire.STEP_FIELDS if f in s}}
+            out += [(wire.ENV_STEP, wire.make_record(m, wire.FLOATS, wire.STEP_FIELDS, [step.get(f, 0) for f in wire.STEP_FIELDS])),
+                    (wire.CRITIC, wire.make_record(m, wire.FLOATS, wire.CRITIC_FIELDS,
                                              [key, s["intrinsic"], s["reached"], s["option_done"], s["subgoal"]])),
-                    (P.OBSERVATION, _image(m, key, 1, t)),
-                    (P.POSE, P.make_pose(m, key, "map", 1.0, 2.0))]
+                    (wire.OBSERVATION, _image(m, key, 1, t)),
+                    (wire.POSE, wire.make_pose(m, key, "map", 1.0, 2.0))]
             new_option = bool(s["option_done"])
     return out
 

@@ -21,7 +21,7 @@ from hdrqn_ros.middleware.cyclone import CycloneMiddleware, _dds_qos
 from hdrqn_ros.middleware.rclpy_backend import RclpyMiddleware
 from hdrqn_ros.middleware.messages import typestore, to_rosbags
 from hdrqn_ros.middleware.port import LATCHED_QOS, QoS
-from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.wire import obs_digest
 from hdrqn_ros.recording.bag import BagWriter
 from hdrqn_ros.recording.transitions import GROUP_TOPICS, read_episodes
@@ -129,10 +129,10 @@ def test_payload_bytes_equal_rosbags_cdr(domain):
             pub.publish(msg)
             raw = wait_for(lambda: ddspy_take(reader._ref, SampleState.Any | ViewState.Any | InstanceState.Any, 1),
                            5, f"a sample of {type_name}")
-            wire = bytes(raw[0][0])
+            sample = bytes(raw[0][0])
             expected = bytes(store.serialize_cdr(to_rosbags(msg), type_name))
-            assert wire[:4] == b"\x00\x01\x00\x00", "XCDR1 little-endian encapsulation"
-            assert wire[:len(expected)] == expected and not any(wire[len(expected):]), type_name
+            assert sample[:4] == b"\x00\x01\x00\x00", "XCDR1 little-endian encapsulation"
+            assert sample[:len(expected)] == expected and not any(sample[len(expected):]), type_name
     finally:
         mw.shutdown()
 
@@ -141,13 +141,13 @@ def wire_samples(node) -> dict:
     """One message of every type the graph publishes, built through ``node``'s backend."""
     rng = np.random.default_rng(0)
     return {
-        P.IMAGE: P.make_image(node, 123_000_000, rng.integers(0, 255, (44, 44, 3), dtype=np.uint8), "map"),
-        P.FLOATS: P.make_record(node, P.FLOATS, P.CRITIC_FIELDS, [5e6, -1.0, 0, 1, 1]),
-        P.INTS: P.make_record(node, P.INTS, P.ACTION_FIELDS, [5_000_000, 3]),
-        P.BYTES: P.make_weights(node, b"\x01\x02\x03", 7),
-        P.STRING: node.msg(P.STRING)(data='{"episodes": 3}'),
-        P.POSE_STAMPED: P.make_pose(node, 10, "map", 1.5, -2.0),
-        P.CLOCK_TYPE: node.msg(P.CLOCK_TYPE)(clock=P.make_time(node, 3_000_000_123)),
+        wire.IMAGE: wire.make_image(node, 123_000_000, rng.integers(0, 255, (44, 44, 3), dtype=np.uint8), "map"),
+        wire.FLOATS: wire.make_record(node, wire.FLOATS, wire.CRITIC_FIELDS, [5e6, -1.0, 0, 1, 1]),
+        wire.INTS: wire.make_record(node, wire.INTS, wire.ACTION_FIELDS, [5_000_000, 3]),
+        wire.BYTES: wire.make_weights(node, b"\x01\x02\x03", 7),
+        wire.STRING: node.msg(wire.STRING)(data='{"episodes": 3}'),
+        wire.POSE_STAMPED: wire.make_pose(node, 10, "map", 1.5, -2.0),
+        wire.CLOCK_TYPE: node.msg(wire.CLOCK_TYPE)(clock=wire.make_time(node, 3_000_000_123)),
         "geometry_msgs/msg/Twist": node.msg("geometry_msgs/msg/Twist")(
             linear=node.msg("geometry_msgs/msg/Vector3")(x=0.2, y=0.0, z=0.0)),
     }
@@ -175,9 +175,9 @@ def test_rclpy_serializes_every_graph_message_like_the_cyclone_backend(domain):
 def record_like_ros2_bag(node, writer: BagWriter, topics: dict[str, str]) -> None:
     """What ``ros2 bag record -s mcap`` does: subscribe, write each sample's CDR at receipt time."""
     for topic, type_name in topics.items():
-        conn = writer.add_topic(topic, type_name, depth=P.STEP_QOS.depth)
+        conn = writer.add_topic(topic, type_name, depth=wire.STEP_QOS.depth)
         node.create_subscription(type_name, topic, lambda m, c=conn: writer.write(c, time.time_ns(), node.to_cdr(m)),
-                                 P.STEP_QOS)
+                                 wire.STEP_QOS)
 
 
 def test_graph_trains_and_transitions_align(domain, backend, tmp_path):
@@ -190,12 +190,12 @@ def test_graph_trains_and_transitions_align(domain, backend, tmp_path):
     sup = None
     try:  # the recorder is up before the graph, as one starts `ros2 bag record` first
         node = mw.create_node("nav_probe")
-        node.create_subscription(P.POSE_STAMPED, "/goal_pose", goals.append)
+        node.create_subscription(wire.POSE_STAMPED, "/goal_pose", goals.append)
         node.create_subscription("geometry_msgs/msg/Twist", "/cmd_vel", twists.append)
-        node.create_subscription(P.INTS, "/subgoal", lambda m: subgoals.append(P.read_record(m, P.SUBGOAL_FIELDS,
+        node.create_subscription(wire.INTS, "/subgoal", lambda m: subgoals.append(wire.read_record(m, wire.SUBGOAL_FIELDS,
                                                                                                np.int64)))
         record_like_ros2_bag(node, writer, {**{f"/{t}": ty for t, ty in GROUP_TOPICS.items()},
-                                            "/clock": P.CLOCK_TYPE})
+                                            "/clock": wire.CLOCK_TYPE})
         sup = start_graph(tmp_path, episodes=8, learner={"record": str(learner_bag)})
 
         def finished():
@@ -299,7 +299,7 @@ def test_sub_controller_drives_cmd_vel_from_a_costmap(domain, backend, tmp_path)
         node.create_subscription("geometry_msgs/msg/Twist", "/cmd_vel", twists.append)
         pub = node.create_publisher("nav_msgs/msg/OccupancyGrid", "/local_costmap/costmap", LATCHED_QOS)
         grid = node.msg("nav_msgs/msg/OccupancyGrid")(
-            header=P.make_header(node, 5_000_000_000, "odom"),
+            header=wire.make_header(node, 5_000_000_000, "odom"),
             info=node.msg("nav_msgs/msg/MapMetaData")(resolution=0.05, width=60, height=60),
             data=node.pack(np.zeros(3600, np.int8)))
         for _ in range(100):
@@ -367,20 +367,20 @@ def test_malformed_messages_are_rejected_and_logged(domain, backend, tmp_path):
     try:
         node = mw.create_node("prober")
         steps, actions = [], []
-        node.create_subscription(P.FLOATS, "/env_step", lambda m: steps.append(P.read_record(m, P.STEP_FIELDS)))
-        node.create_subscription(P.INTS, "/action", lambda m: actions.append(P.read_record(m, ("key",), np.int64,
+        node.create_subscription(wire.FLOATS, "/env_step", lambda m: steps.append(wire.read_record(m, wire.STEP_FIELDS)))
+        node.create_subscription(wire.INTS, "/action", lambda m: actions.append(wire.read_record(m, ("key",), np.int64,
                                                                                              extra=True)))
-        action_pub = node.create_publisher(P.INTS, "/action")
-        credit_pub = node.create_publisher(P.FLOATS, "/learner_credit", LATCHED_QOS)
-        obs_pub = node.create_publisher(P.IMAGE, "/probe_obs")
-        step_pub = node.create_publisher(P.FLOATS, "/probe_step")
+        action_pub = node.create_publisher(wire.INTS, "/action")
+        credit_pub = node.create_publisher(wire.FLOATS, "/learner_credit", LATCHED_QOS)
+        obs_pub = node.create_publisher(wire.IMAGE, "/probe_obs")
+        step_pub = node.create_publisher(wire.FLOATS, "/probe_step")
         mw.spin(until=lambda: bool(steps), timeout_s=30)
         key = int(steps[0]["key"])
 
         def sub_answers(k: int) -> bool:
             step = dict(steps[0], key=k)
-            obs_pub.publish(P.make_image(node, k, np.zeros((44, 44, 3), np.uint8), "map"))
-            step_pub.publish(P.make_record(node, P.FLOATS, P.STEP_FIELDS, [step[f] for f in P.STEP_FIELDS]))
+            obs_pub.publish(wire.make_image(node, k, np.zeros((44, 44, 3), np.uint8), "map"))
+            step_pub.publish(wire.make_record(node, wire.FLOATS, wire.STEP_FIELDS, [step[f] for f in wire.STEP_FIELDS]))
             mw.spin(until=lambda: any(a["key"] == k for a in actions), timeout_s=3)
             return any(a["key"] == k for a in actions)
 
@@ -388,23 +388,23 @@ def test_malformed_messages_are_rejected_and_logged(domain, backend, tmp_path):
         assert any(sub_answers(key + 1) for _ in range(20)), "the sub-controller never answered"
         for pub in (action_pub, credit_pub, obs_pub, step_pub):  # every reader has found our writers
             mw.spin(until=lambda: pub.get_subscription_count() > 0, timeout_s=20)
-        action_pub.publish(P.make_record(node, P.INTS, P.ACTION_FIELDS, [key, 99]))  # action out of range
-        action_pub.publish(P.make_record(node, P.INTS, ("key",), [key]))  # too few values
-        credit_pub.publish(P.make_record(node, P.FLOATS, P.CREDIT_FIELDS, [np.nan, 0, 0, 0, 0]))  # NaN
-        obs_pub.publish(P.make_image(node, key + 20, np.zeros((30, 44, 3), np.uint8), "map"))  # wrong size
-        bad = node.msg(P.IMAGE)(header=P.make_header(node, key + 20, "map"), height=44, width=44, encoding="bgr8",
+        action_pub.publish(wire.make_record(node, wire.INTS, wire.ACTION_FIELDS, [key, 99]))  # action out of range
+        action_pub.publish(wire.make_record(node, wire.INTS, ("key",), [key]))  # too few values
+        credit_pub.publish(wire.make_record(node, wire.FLOATS, wire.CREDIT_FIELDS, [np.nan, 0, 0, 0, 0]))  # NaN
+        obs_pub.publish(wire.make_image(node, key + 20, np.zeros((30, 44, 3), np.uint8), "map"))  # wrong size
+        bad = node.msg(wire.IMAGE)(header=wire.make_header(node, key + 20, "map"), height=44, width=44, encoding="bgr8",
                                 step=132, data=node.pack(np.zeros(44 * 44 * 3, np.uint8)))
         obs_pub.publish(bad)  # wrong encoding
         nan_step = dict(steps[0], key=key + 20, extrinsic=np.nan)
-        step_pub.publish(P.make_record(node, P.FLOATS, P.STEP_FIELDS, [nan_step[f] for f in P.STEP_FIELDS]))
+        step_pub.publish(wire.make_record(node, wire.FLOATS, wire.STEP_FIELDS, [nan_step[f] for f in wire.STEP_FIELDS]))
         mw.spin(timeout_s=1.0)
         for i in range(FLOOD):  # a flood: the warnings are throttled, the nodes keep up
-            action_pub.publish(P.make_record(node, P.INTS, P.ACTION_FIELDS, [key, 99]))
-            obs_pub.publish(P.make_image(node, key + 20, np.zeros((30, 44, 3), np.uint8), "map"))
+            action_pub.publish(wire.make_record(node, wire.INTS, wire.ACTION_FIELDS, [key, 99]))
+            obs_pub.publish(wire.make_image(node, key + 20, np.zeros((30, 44, 3), np.uint8), "map"))
             if i % 20 == 0:
                 mw.spin(timeout_s=0.01)
         mw.spin(timeout_s=1.0)
-        action_pub.publish(P.make_record(node, P.INTS, P.ACTION_FIELDS, [key, 1]))  # a good one: the env goes on
+        action_pub.publish(wire.make_record(node, wire.INTS, wire.ACTION_FIELDS, [key, 1]))  # a good one: the env goes on
         mw.spin(until=lambda: len({s["key"] for s in steps}) >= 2, timeout_s=10)
         assert len({s["key"] for s in steps}) >= 2, "the environment stopped stepping"
         assert sub_answers(key + 30), "the sub-controller stopped answering after the bad messages"

@@ -16,8 +16,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "hdrqn_ros"
 
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("base", ("hdrqn_ros.throttle", "hdrqn_ros.yaml_files")),
-    ("torch-free policy", ("hdrqn_ros.deploy",)),
     ("envs and critic", ("hdrqn_ros.envs", "hdrqn_ros.critic", "hdrqn_ros.__init__")),
+    ("torch-free policy", ("hdrqn_ros.deploy",)),
     ("config", ("hdrqn_ros.config",)),
     ("agents", ("hdrqn_ros.agents",)),
     ("training", ("hdrqn_ros.training",)),
@@ -33,7 +33,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
 (``Node``/``Publisher``/``QoS``, array helpers: an interface, no DDS) sits below the protocol,
 which builds its messages through a port ``Node``; the backends that implement the port sit
 above recording. ``hdrqn_ros/__init__.py`` only registers the gymnasium ids. The torch-free
-policy (``deploy``: numpy and onnxruntime) stands on nothing of the package."""
+policy (``deploy``: numpy and onnxruntime) stands on the domains' constants only."""
 
 CORE_TOP = "recording"
 """This layer and those below import no ROS or DDS library (:data:`MIDDLEWARE_LIBRARIES`)."""

@@ -115,7 +115,7 @@ NODE = r"""
 import json, sys
 import numpy as np
 from hdrqn_ros.middleware import open_middleware
-from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol import wire
 role, want, limit_s = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
 mw = open_middleware(sys.argv)
 network = getattr(mw, "network", None) or getattr(mw, "interface", None)
@@ -124,16 +124,16 @@ sent, got = [0], []
 try:
     node = mw.create_node(role)
     if role == "talker":
-        pub = node.create_publisher(P.IMAGE, sys.argv[4])
+        pub = node.create_publisher(wire.IMAGE, sys.argv[4])
         def tick():
             sent[0] += 1
-            pub.publish(P.make_image(node, sent[0] * 1_000_000, pixels, "camera"))
+            pub.publish(wire.make_image(node, sent[0] * 1_000_000, pixels, "camera"))
         node.create_timer(0.05, tick)
     else:
         def on_image(msg):
-            key, image = P.read_image(msg, 44, 44)
+            key, image = wire.read_image(msg, 44, 44)
             got.append(key if (image == pixels).all() else -1)
-        node.create_subscription(P.IMAGE, sys.argv[4], on_image)
+        node.create_subscription(wire.IMAGE, sys.argv[4], on_image)
     mw.spin(until=lambda: len(got) >= want if role == "listener" else False, timeout_s=limit_s)
 except KeyboardInterrupt:  # the test stops the talker with SIGINT
     pass

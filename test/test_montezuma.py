@@ -16,7 +16,7 @@ from hdrqn_ros.envs import montezuma as mz
 from hdrqn_ros.envs.domain import NO_SUBGOAL, OBS_SHAPE
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.recording.transitions import TransitionRecorder, read_episodes
-from hdrqn_ros.training.episodes import EpisodeRecorder
+from hdrqn_ros.training.episodes import EpisodeBuilder
 from hdrqn_ros.training.rollout import Rollout
 from hdrqn_ros.training.learner import build_agent
 
@@ -360,7 +360,7 @@ def test_a_death_is_terminal_for_the_sub_controller_in_both_paths(tmp_path):
     Scripted(agent.meta, [mz.KEY_SUBGOAL] * 5)  # an option the fall never reaches
     batch = make_batch(ENV_ID, 1, **cfg.env_kwargs)
     rollout = Rollout(batch, agent, seed=0, record_subgoal_images=True)
-    recorder = EpisodeRecorder(1, True, cfg.sub.gamma, cfg.meta.gamma)
+    builder = EpisodeBuilder(1, True, cfg.sub.gamma, cfg.meta.gamma)
     sink = TransitionRecorder(tmp_path / "bag", cfg, 1)
     records, finished, lives = [], [], []
     rng = np.random.default_rng(0)
@@ -368,7 +368,7 @@ def test_a_death_is_terminal_for_the_sub_controller_in_both_paths(tmp_path):
         records.append(rollout.step(0.0, 0.0, rng))
         lives.append(batch._ales[0].lives())  # ALE's own count (the last step resets the game)
         sink.write(records[-1])
-        finished += recorder.add(records[-1])
+        finished += builder.add(records[-1])
     sink.close()
 
     death = 23  # down the middle ladder, carried off the conveyor's left end

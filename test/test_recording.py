@@ -184,13 +184,13 @@ def test_observation_of_another_size_is_an_error(tmp_path):
     cfg = small_config("dqn")
     Image, Header, Time = (TYPESTORE.types[t] for t in ("sensor_msgs/msg/Image", "std_msgs/msg/Header",
                                                         "builtin_interfaces/msg/Time"))
-    from hdrqn_ros.protocol import wire as P
+    from hdrqn_ros.protocol import wire
     from hdrqn_ros.recording.transitions import RosbagsMessages
     m = RosbagsMessages()
-    step = P.make_record(m, P.FLOATS, P.STEP_FIELDS, [10_000_000, 0, 0, 0, 0] + [0] * 11)
+    step = wire.make_record(m, wire.FLOATS, wire.STEP_FIELDS, [10_000_000, 0, 0, 0, 0] + [0] * 11)
     image = Image(header=Header(stamp=Time(sec=0, nanosec=10_000_000), frame_id="x"), height=84, width=84,
                   encoding="rgb8", is_bigendian=0, step=84 * 3, data=np.zeros(84 * 84 * 3, np.uint8))
-    bag = write_bag(tmp_path / "big", {"/env_step": P.FLOATS, "/observation": P.IMAGE, "/action": P.INTS},
+    bag = write_bag(tmp_path / "big", {"/env_step": wire.FLOATS, "/observation": wire.IMAGE, "/action": wire.INTS},
                     [("/env_step", step), ("/observation", image)])
     with pytest.raises(BagError, match=r"big: topic /observation: image must be 44x44"):
         list(read_episodes([bag], cfg, 2))

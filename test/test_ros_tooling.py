@@ -31,7 +31,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from hdrqn_ros.middleware.rclpy_backend import RclpyMiddleware, RclpyNode  # noqa: E402
 from hdrqn_ros.nodes import controllers, environment, learner, nav  # noqa: E402
 from hdrqn_ros.nodes.common import ENV_DEFAULTS  # noqa: E402
-from hdrqn_ros.protocol import wire as P  # noqa: E402
+from hdrqn_ros.protocol import wire  # noqa: E402
 from hdrqn_ros.supervisor import Supervisor  # noqa: E402
 from hdrqn_ros.throttle import BURST  # noqa: E402
 
@@ -88,7 +88,7 @@ def nav2_topics() -> dict[str, dict[str, Any]]:
     "Notes" of docs/topics.md): ``goal_pose`` and ``cmd_vel`` at their default names."""
     stamped = yaml.safe_load((CONFIG / "nav2" / "actions.yaml").read_text()).get("stamped", False)
     twist = "geometry_msgs/msg/TwistStamped" if stamped else "geometry_msgs/msg/Twist"
-    return {"/" + nav.META_PARAMETERS["goal_pose_topic"]: {"type": P.POSE_STAMPED, "publisher": "meta_controller"},
+    return {"/" + nav.META_PARAMETERS["goal_pose_topic"]: {"type": wire.POSE_STAMPED, "publisher": "meta_controller"},
             "/" + nav.SUB_PARAMETERS["cmd_vel_topic"]: {"type": twist, "publisher": "sub_controller"}}
 
 
@@ -150,8 +150,8 @@ def graph(tmp_path_factory):
             probe = mw.create_node("probe")
             g = Graph(mw, probe, None, tmp)  # type: ignore[arg-type]
             probe._node.create_subscription(Log, "/rosout", g.rosout.append, ROSOUT_QOS)
-            steps = probe.create_subscription(P.FLOATS, "/env_step",
-                                              lambda m: g.steps.append(P.read_record(m, P.STEP_FIELDS)), P.STEP_QOS)
+            steps = probe.create_subscription(wire.FLOATS, "/env_step",
+                                              lambda m: g.steps.append(wire.read_record(m, wire.STEP_FIELDS)), wire.STEP_QOS)
             sup = g.sup = start_graph(tmp, episodes=EPISODES)
 
             def running() -> str | None:
@@ -238,8 +238,8 @@ def test_node_and_topic_introspection_matches_the_docs(graph):
     every topic with the type of docs/topics.md, and who publishes what."""
     table = documented_topics()
     assert {"/env_step", "/observation", "/learner/status", "/clock", "/sub_state"} <= set(table)
-    assert table["/env_step"]["type"] == P.FLOATS and table["/observation"]["type"] == P.IMAGE
-    assert table["/learner/status"] == {"type": P.STRING, "publisher": "learner", "subscribers": set()}
+    assert table["/env_step"]["type"] == wire.FLOATS and table["/observation"]["type"] == wire.IMAGE
+    assert table["/learner/status"] == {"type": wire.STRING, "publisher": "learner", "subscribers": set()}
     topics = {**table, **nav2_topics()}
     expected = {name: [row["type"]] for name, row in topics.items()} | {t: [ty] for t, ty in RCLPY_TOPICS.items()}
 

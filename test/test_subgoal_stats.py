@@ -15,7 +15,7 @@ from hdrqn_ros.config import build_config
 from hdrqn_ros.envs.domain import NO_SUBGOAL
 from hdrqn_ros.envs.montezuma import SUBGOAL_NEIGHBOURS
 from hdrqn_ros.envs.registration import make_batch
-from hdrqn_ros.training.episodes import EpisodeRecorder, OptionOutcome
+from hdrqn_ros.training.episodes import EpisodeBuilder, OptionOutcome
 from hdrqn_ros.training.rollout import Rollout
 from hdrqn_ros.training.subgoals import option_table, option_table_markdown, read_options
 from hdrqn_ros.training.learner import build_agent
@@ -31,11 +31,11 @@ def test_option_log_and_visits_match_a_replay_in_a_single_env():
     cfg = build_config([], algo="hdrqn-v1", env=ENV)
     agent = build_agent(cfg)
     rollout = Rollout(make_batch(ENV, 2), agent, seed=11)
-    rec = EpisodeRecorder(2, True, cfg.sub.gamma, cfg.meta.gamma)
+    builder = EpisodeBuilder(2, True, cfg.sub.gamma, cfg.meta.gamma)
     rng = np.random.default_rng(0)
     episodes = {0: [], 1: []}
     for _ in range(260):
-        for i, sub, meta, stats in rec.add(rollout.step(0.3, 0.5, rng)):
+        for i, sub, meta, stats in builder.add(rollout.step(0.3, 0.5, rng)):
             episodes[i].append((sub, meta, stats))
     checked = reached = 0
     for i, eps in episodes.items():

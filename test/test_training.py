@@ -13,7 +13,7 @@ from hdrqn_ros.config import ALGOS, ConfigError, build_config
 from hdrqn_ros.agents.controller import TrainingDiverged
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint
-from hdrqn_ros.training.episodes import EpisodeRecorder
+from hdrqn_ros.training.episodes import EpisodeBuilder
 from hdrqn_ros.training.rollout import Rollout
 from hdrqn_ros.training.learner import build_agent
 from hdrqn_ros.training.trainer import Trainer
@@ -33,11 +33,11 @@ def _record(algo: str, steps: int, seed: int = 7, eps: float = 0.5):
     cfg = build_config([], algo=algo)
     agent = build_agent(cfg)
     rollout = Rollout(make_batch(ENV, 2), agent, seed=seed)
-    rec = EpisodeRecorder(2, agent.meta is not None, cfg.sub.gamma, cfg.meta.gamma)
+    builder = EpisodeBuilder(2, agent.meta is not None, cfg.sub.gamma, cfg.meta.gamma)
     rng = np.random.default_rng(0)
     episodes = {0: [], 1: []}
     for _ in range(steps):
-        for i, sub, meta, stats in rec.add(rollout.step(eps, eps, rng)):
+        for i, sub, meta, stats in builder.add(rollout.step(eps, eps, rng)):
             episodes[i].append((sub, meta, stats))
     return episodes
 
@@ -264,11 +264,11 @@ def test_learner_schedule_and_store(tmp_path):
     cfg = tiny(eval_every=3, checkpoint_every=2, sub_only_episodes=3, learning_starts=10**6)
     learner = Learner(cfg, tmp_path, progress=False, tensorboard=False)
     rollout = Rollout(make_batch(ENV, 2), learner.agent, seed=0)
-    rec = EpisodeRecorder(2, True, cfg.sub.gamma, cfg.meta.gamma)
+    builder = EpisodeBuilder(2, True, cfg.sub.gamma, cfg.meta.gamma)
     rng = np.random.default_rng(0)
     items = []
     while len(items) < 5:
-        items += rec.add(rollout.step(1.0, 1.0, rng))
+        items += builder.add(rollout.step(1.0, 1.0, rng))
     steps = sum(stats.steps for *_, stats in items[:2])
     assert learner.store(items[:2], counted=False) == (2, steps)
     assert learner.episodes == 0 and len(learner.agent.sub.replay) == len(learner.agent.meta.replay) == 2

@@ -23,14 +23,14 @@ matrix; all biases zero (thesis table 4.7).
 """
 from __future__ import annotations
 
-from typing import Optional, Tuple
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 
+from hdrqn_ros.envs.domain import OBS_SIZE
+
 __all__ = [
-    "IMAGE_SIZE",
     "FEATURES",
     "lstm_state_size",
     "LSTMState",
@@ -44,11 +44,10 @@ __all__ = [
     "xavier_init_",
 ]
 
-IMAGE_SIZE = 44
 FEATURES = 256
 lstm_state_size = 256
 
-LSTMState = Tuple[Tensor, Tensor]
+LSTMState = tuple[Tensor, Tensor]
 
 
 def xavier_init_(module: nn.Module) -> nn.Module:
@@ -82,7 +81,7 @@ class ConvTrunk(nn.Module):
         if in_channels < 1:
             raise ValueError(f"in_channels must be >= 1, got {in_channels}")
         self.in_channels = int(in_channels)
-        self.input_shape = (IMAGE_SIZE, IMAGE_SIZE, self.in_channels)
+        self.input_shape = (OBS_SIZE, OBS_SIZE, self.in_channels)
         self.out_features = FEATURES
         self.convs = nn.ModuleList(
             [
@@ -107,7 +106,7 @@ class ConvTrunk(nn.Module):
         x = _as_tensor(x)
         if x.dim() != 4 or tuple(x.shape[1:]) != self.input_shape:
             raise ValueError(
-                f"ConvTrunk expects (N, {IMAGE_SIZE}, {IMAGE_SIZE}, {self.in_channels}) "
+                f"ConvTrunk expects (N, {OBS_SIZE}, {OBS_SIZE}, {self.in_channels}) "
                 f"channels-last images, got {tuple(x.shape)}"
             )
         if x.dtype == torch.uint8:
@@ -189,7 +188,7 @@ class RecurrentQNetwork(nn.Module):
         z = torch.zeros(batch_size, lstm_state_size, device=device)
         return z, z.clone()
 
-    def _check_state(self, state: Optional[LSTMState], batch: int, ref: Tensor) -> LSTMState:
+    def _check_state(self, state: LSTMState | None, batch: int, ref: Tensor) -> LSTMState:
         if state is None:
             return self.initial_state(batch, ref.device)
         h, c = state
@@ -200,7 +199,7 @@ class RecurrentQNetwork(nn.Module):
             )
         return h, c
 
-    def forward(self, x: Tensor, state: Optional[LSTMState] = None) -> Tuple[Tensor, LSTMState]:
+    def forward(self, x: Tensor, state: LSTMState | None = None) -> tuple[Tensor, LSTMState]:
         """``x`` (B, T, ...) -> ``(q (B, T, n), (h, c))`` with h, c of (B, 256).
 
         The LSTM is unrolled with plain torch ops (input projections of all T steps in
@@ -241,7 +240,7 @@ class RecurrentQNetwork(nn.Module):
         gates = gates + torch.addmm(lstm.bias_hh_l0, h, lstm.weight_hh_l0.t())
         return self._gates_to_state(gates, c)
 
-    def act(self, x: Tensor, state: Optional[LSTMState] = None) -> Tuple[Tensor, LSTMState]:
+    def act(self, x: Tensor, state: LSTMState | None = None) -> tuple[Tensor, LSTMState]:
         """One step: ``x`` (B, ...) -> ``(q (B, n), (h, c))``. Wrap in ``torch.no_grad()``
         (or ``inference_mode``) when acting."""
         x = _as_tensor(x)
@@ -269,7 +268,7 @@ class FeedForwardQNetwork(nn.Module):
     def initial_state(self, batch_size: int, device=None) -> None:
         return None
 
-    def forward(self, x: Tensor, state: None = None) -> Tuple[Tensor, None]:
+    def forward(self, x: Tensor, state: None = None) -> tuple[Tensor, None]:
         """``x`` (B, T, ...) -> ``(q (B, T, n), None)``."""
         x = _as_tensor(x)
         if x.dim() < 3:
@@ -278,7 +277,7 @@ class FeedForwardQNetwork(nn.Module):
         q = self.head(torch.relu(self.fc(self.trunk(x.reshape(b * t, *x.shape[2:])))))
         return q.view(b, t, self.n_outputs), None
 
-    def act(self, x: Tensor, state: None = None) -> Tuple[Tensor, None]:
+    def act(self, x: Tensor, state: None = None) -> tuple[Tensor, None]:
         """``x`` (B, ...) -> ``(q (B, n), None)``."""
         return self.head(torch.relu(self.fc(self.trunk(_as_tensor(x))))), None
 

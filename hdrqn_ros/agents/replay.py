@@ -50,7 +50,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Callable, Dict, NamedTuple, Optional
+from typing import Callable, NamedTuple
 
 import numpy as np
 import torch
@@ -66,7 +66,7 @@ def _owned(a: np.ndarray) -> np.ndarray:
     return a
 
 
-def _rows_checked(what: str, arrays, rows: int, expected: str) -> Dict[str, np.ndarray]:
+def _rows_checked(what: str, arrays, rows: int, expected: str) -> dict[str, np.ndarray]:
     """``arrays`` as a dict of numpy arrays with ``rows`` leading rows, or a ValueError."""
     if not isinstance(arrays, dict):
         raise ValueError(f"Episode.{what} must be a dict name -> array")
@@ -87,9 +87,9 @@ class Episode:
     """
 
     frames: np.ndarray
-    fields: Dict[str, np.ndarray] = field(default_factory=dict)
-    segment_starts: Optional[np.ndarray] = None
-    segment_data: Dict[str, np.ndarray] = field(default_factory=dict)
+    fields: dict[str, np.ndarray] = field(default_factory=dict)
+    segment_starts: np.ndarray | None = None
+    segment_data: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self):
         self.frames = np.asarray(self.frames)
@@ -171,8 +171,8 @@ class SequenceBatch:
     """
 
     frames: np.ndarray
-    fields: Dict[str, np.ndarray]
-    segment_data: Dict[str, np.ndarray]
+    fields: dict[str, np.ndarray]
+    segment_data: dict[str, np.ndarray]
     valid: np.ndarray
     loss_mask: np.ndarray
     episode_index: np.ndarray
@@ -218,7 +218,7 @@ class ReplaySamples(NamedTuple):
     discount: torch.Tensor
     terminal: torch.Tensor
     mask: torch.Tensor
-    next_invalid: Optional[torch.Tensor]
+    next_invalid: torch.Tensor | None
 
 
 class EpisodeReplay:
@@ -230,8 +230,8 @@ class EpisodeReplay:
     def __init__(
         self,
         capacity_episodes: int,
-        seed: Optional[int] = None,
-        capacity_bytes: Optional[int] = None,
+        seed: int | None = None,
+        capacity_bytes: int | None = None,
     ):
         if int(capacity_episodes) < 1:
             raise ValueError(f"capacity_episodes must be >= 1, got {capacity_episodes}")
@@ -303,8 +303,8 @@ class EpisodeReplay:
         self,
         batch_size: int,
         seq_len: int,
-        rng: Optional[np.random.Generator] = None,
-        loss_len: Optional[int] = None,
+        rng: np.random.Generator | None = None,
+        loss_len: int | None = None,
     ) -> SequenceBatch:
         """Sample ``batch_size`` windows of up to ``seq_len`` steps (see module docstring).
 
@@ -369,8 +369,8 @@ class EpisodeReplay:
         seq_len: int,
         build_input: Callable[[SequenceBatch], np.ndarray],
         device: torch.device | str = "cpu",
-        rng: Optional[np.random.Generator] = None,
-        loss_len: Optional[int] = None,
+        rng: np.random.Generator | None = None,
+        loss_len: int | None = None,
     ) -> ReplaySamples:
         """:meth:`sample` windows, as typed :class:`ReplaySamples` on ``device``; the network
         input ``obs`` is ``build_input(window)`` (e.g. each frame stacked with its option's

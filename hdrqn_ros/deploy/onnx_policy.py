@@ -22,18 +22,18 @@ import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Tuple
 
 import numpy as np
 import onnxruntime as ort
 
-__all__ = ["POLICY_FILE", "POLICY_FORMAT", "POLICY_VERSION", "IMAGE_SIZE", "STATE_SIZE", "ALGOS", "PolicyError",
+from hdrqn_ros.envs.domain import OBS_SIZE
+
+__all__ = ["POLICY_FILE", "POLICY_FORMAT", "POLICY_VERSION", "STATE_SIZE", "ALGOS", "PolicyError",
            "TensorSpec", "role_io", "stack_subgoal", "file_sha256", "OnnxPolicy"]
 
 POLICY_FILE = "policy.json"
 POLICY_FORMAT = "hdrqn_ros-policy"
 POLICY_VERSION = 1
-IMAGE_SIZE = 44
 STATE_SIZE = 256
 """The LSTM state size (``hdrqn_ros.agents.networks.lstm_state_size``)."""
 
@@ -47,7 +47,7 @@ ALGOS: dict[str, dict] = {
 """``hdrqn_ros.agents.algorithms.ALGO_SPECS`` as plain data (that module imports torch);
 test/test_onnx_export.py checks that both tables agree."""
 
-LSTMState = Tuple[np.ndarray, np.ndarray]
+LSTMState = tuple[np.ndarray, np.ndarray]
 
 
 class PolicyError(ValueError):
@@ -83,13 +83,13 @@ def role_io(algo: str, role: str, num_actions: int, num_subgoals: int) -> tuple[
         raise PolicyError(f"unknown algo {algo!r}; choose one of {sorted(ALGOS)}")
     spec = ALGOS[algo]
     if role == "sub":
-        x = TensorSpec("x", (None, IMAGE_SIZE, IMAGE_SIZE, 6 if spec["hierarchical"] else 3), "uint8")
+        x = TensorSpec("x", (None, OBS_SIZE, OBS_SIZE, 6 if spec["hierarchical"] else 3), "uint8")
         n = num_actions
     elif role == "meta" and spec["hierarchical"]:
         if spec["meta_input"] == "state":
             x = TensorSpec("x", (None, STATE_SIZE), "float32")
         else:
-            x = TensorSpec("x", (None, IMAGE_SIZE, IMAGE_SIZE, 3), "uint8")
+            x = TensorSpec("x", (None, OBS_SIZE, OBS_SIZE, 3), "uint8")
         n = num_subgoals
     else:
         raise PolicyError(f"{algo} has no {role!r} controller")
@@ -188,7 +188,7 @@ class OnnxPolicy:
         self.env_kwargs: dict = dict(meta.get("env_kwargs") or {})
         self.num_actions: int = int(meta["num_actions"])
         self.num_subgoals: int = int(meta["num_subgoals"])
-        self.meta_input: Optional[str] = meta.get("meta_input")
+        self.meta_input: str | None = meta.get("meta_input")
         self.meta_state: str = meta.get("meta_state", "c")
         self.hierarchical: bool = ALGOS[self.algo]["hierarchical"]
 
@@ -227,8 +227,8 @@ class OnnxPolicy:
             value = meta.get(key)
             if not isinstance(value, int) or isinstance(value, bool) or value < (1 if key == "num_actions" else 0):
                 raise PolicyError(f"{meta_path}: {key} must be a positive integer, got {value!r}")
-        if meta.get("image_size", IMAGE_SIZE) != IMAGE_SIZE:
-            raise PolicyError(f"{meta_path}: image_size is {meta.get('image_size')!r}, expected {IMAGE_SIZE}")
+        if meta.get("image_size", OBS_SIZE) != OBS_SIZE:
+            raise PolicyError(f"{meta_path}: image_size is {meta.get('image_size')!r}, expected {OBS_SIZE}")
         if meta.get("meta_input") != ALGOS[algo]["meta_input"]:
             raise PolicyError(f"{meta_path}: meta_input is {meta.get('meta_input')!r}, but {algo} has "
                               f"{ALGOS[algo]['meta_input']!r}")
@@ -280,13 +280,13 @@ class OnnxPolicy:
         """``x``'s spec of ``role`` (shape with ``None`` for the batch axis, dtype)."""
         return self._model(role).x_spec
 
-    def initial_state(self, role: str, batch_size: int = 1) -> Optional[LSTMState]:
+    def initial_state(self, role: str, batch_size: int = 1) -> LSTMState | None:
         """Zeros ``(h, c)`` of (batch_size, 256) float32, or ``None`` for a feed-forward controller."""
         if not self._model(role).recurrent:
             return None
         return np.zeros((batch_size, STATE_SIZE), np.float32), np.zeros((batch_size, STATE_SIZE), np.float32)
 
-    def act(self, role: str, x: np.ndarray, state: Optional[LSTMState] = None) -> tuple[np.ndarray, Optional[LSTMState]]:
+    def act(self, role: str, x: np.ndarray, state: LSTMState | None = None) -> tuple[np.ndarray, LSTMState | None]:
         """One step: ``x`` (B, ...) -> ``(q (B, n) float32, new state)``."""
         model = self._model(role)
         spec = model.x_spec

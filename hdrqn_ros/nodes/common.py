@@ -15,7 +15,7 @@ from hdrqn_ros.config import ConfigError
 from hdrqn_ros.envs.registration import GRID_IDS, MONTEZUMA_IDS, make_batch
 from hdrqn_ros.middleware import (LATCHED_QOS, BackendError, Middleware, Node, ParameterError, RosArgsError,
                                   open_middleware)
-from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol import wire
 from hdrqn_ros.nodes.nav import NavConfigError
 from hdrqn_ros.recording.bag import BagError
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint
@@ -72,8 +72,8 @@ class ActingNetwork:
         self.weights_version = -1
         if params["checkpoint"]:
             self._load_checkpoint(params["checkpoint"])
-        self.rejected_weights = Throttle(node.logger, f"rejected {role} weights on {P.WEIGHTS[role]}")
-        node.create_subscription(P.BYTES, P.WEIGHTS[role], self._on_weights, LATCHED_QOS)
+        self.rejected_weights = Throttle(node.logger, f"rejected {role} weights on {wire.WEIGHTS[role]}")
+        node.create_subscription(wire.BYTES, wire.WEIGHTS[role], self._on_weights, LATCHED_QOS)
 
     def _load_checkpoint(self, path: str) -> None:
         payload = load_checkpoint(path)
@@ -87,8 +87,8 @@ class ActingNetwork:
 
     def _on_weights(self, msg) -> None:
         try:
-            version = P.read_weights_version(msg)
-            load_weights(self.net, P.as_bytes(msg.data))
+            version = wire.read_weights_version(msg)
+            load_weights(self.net, wire.as_bytes(msg.data))
         except (WeightsError, ValueError) as exc:
             self.rejected_weights.warn(exc)
             return

@@ -19,7 +19,7 @@ from hdrqn_ros.agents.policy import HierarchicalPolicy
 from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
 from hdrqn_ros.nodes import nav
-from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol import wire
 from hdrqn_ros.nodes.common import ENV_DEFAULTS, ActingNetwork, NodeConfigError, run_node
 from hdrqn_ros.protocol.follower import StepFollower, done
 
@@ -49,22 +49,22 @@ class _Controller(StepFollower):
         sub, meta = (self.net, None) if self.role == "sub" else (None, self.net)
         self.policy = HierarchicalPolicy(1, sub, meta, self.spec.meta_input, p["meta_state"])
         if p.get("observation_source", "topic") == "topic":  # lock-step with the environment node
-            node.create_subscription(P.FLOATS, P.ENV_STEP, self.on_env_step, P.STEP_QOS)
-        node.create_subscription(P.FLOATS, P.CREDIT, self._on_credit, LATCHED_QOS)
+            node.create_subscription(wire.FLOATS, wire.ENV_STEP, self.on_env_step, wire.STEP_QOS)
+        node.create_subscription(wire.FLOATS, wire.CREDIT, self._on_credit, LATCHED_QOS)
 
     def _on_credit(self, msg) -> None:
-        credit = self.decode(P.CREDIT, lambda: P.read_record(msg, P.CREDIT_FIELDS))
+        credit = self.decode(wire.CREDIT, lambda: wire.read_record(msg, wire.CREDIT_FIELDS))
         if credit is not None:
             self.net.on_credit(credit)
 
     def _on_image(self, topic: str, msg, height: int = OBS_SIZE) -> None:
-        got = self.decode(topic, lambda: P.read_image(msg, height, OBS_SIZE))
+        got = self.decode(topic, lambda: wire.read_image(msg, height, OBS_SIZE))
         if got is not None:
             self.put(topic, got[0], got[1])
 
     def option_starts(self, key: int) -> bool | None:
         """Whether the critic ended the option at ``key`` (a new one starts); ``None``: not heard yet."""
-        critic = self.inbox.get(P.CRITIC, key)
+        critic = self.inbox.get(wire.CRITIC, key)
         return None if critic is None else bool(critic["option_done"])
 
     def reset(self) -> None:
@@ -84,8 +84,9 @@ class SubControllerNode(_Controller):
         super().__init__(mw, "sub_controller")
         node, p = self.node, self.params
         self.subgoal_image = np.zeros((OBS_SIZE, OBS_SIZE, 3), np.uint8)
-        self.pub_action = node.create_publisher(P.INTS, P.ACTION, P.STEP_QOS)
-        self.pub_state = node.create_publisher(P.FLOATS, P.SUB_STATE, P.STEP_QOS) if self.spec.meta_input == "state" else None
+        self.pub_action = node.create_publisher(wire.INTS, wire.ACTION, wire.STEP_QOS)
+        self.pub_state = node.create_publisher(wire.FLOATS, wire.SUB_STATE, wire.STEP_QOS) \
+            if self.spec.meta_input == "state" else None
         self.actions = nav.ActionTable.load(p["action_table"], self.net.num_actions) if p["action_table"] else None
         self.pub_cmd = node.create_publisher(self.actions.type_name, p["cmd_vel_topic"]) if self.actions else None
         self.goals = nav.SubgoalTable.load(p["subgoal_table"], self.net.num_subgoals) if p["subgoal_table"] else None
@@ -99,23 +100,24 @@ class SubControllerNode(_Controller):
         elif source != "topic":
             raise NodeConfigError(f"observation_source must be 'topic' or 'costmap', got {source!r}")
         else:
-            node.create_subscription(P.IMAGE, P.OBSERVATION, lambda m: self._on_image(P.OBSERVATION, m), P.STEP_QOS)
+            node.create_subscription(wire.IMAGE, wire.OBSERVATION, lambda m: self._on_image(wire.OBSERVATION, m),
+                                     wire.STEP_QOS)
         self.acted_key = 0  # the last step key this node chose an action for
         if self.spec.hierarchical:
-            node.create_subscription(P.INTS, P.SUBGOAL, self._on_subgoal, P.STEP_QOS)
+            node.create_subscription(wire.INTS, wire.SUBGOAL, self._on_subgoal, wire.STEP_QOS)
             if source == "topic":
-                node.create_subscription(P.FLOATS, P.CRITIC, self._on_critic, P.STEP_QOS)
-                node.create_subscription(P.IMAGE, P.SUBGOAL_IMAGES, lambda m: self._on_image(
-                    P.SUBGOAL_IMAGES, m, OBS_SIZE * self.net.num_subgoals), P.STEP_QOS)
+                node.create_subscription(wire.FLOATS, wire.CRITIC, self._on_critic, wire.STEP_QOS)
+                node.create_subscription(wire.IMAGE, wire.SUBGOAL_IMAGES, lambda m: self._on_image(
+                    wire.SUBGOAL_IMAGES, m, OBS_SIZE * self.net.num_subgoals), wire.STEP_QOS)
 
     def _on_subgoal(self, msg) -> None:
-        rec = self.decode(P.SUBGOAL, lambda: P.read_record(msg, P.SUBGOAL_FIELDS, np.int64))
-        if rec is not None and self.decode(P.SUBGOAL, lambda: P.check_index(rec["subgoal"], self.net.num_subgoals,
+        rec = self.decode(wire.SUBGOAL, lambda: wire.read_record(msg, wire.SUBGOAL_FIELDS, np.int64))
+        if rec is not None and self.decode(wire.SUBGOAL, lambda: wire.check_index(rec["subgoal"], self.net.num_subgoals,
                                                                              "subgoal")) is not None:
             if self.params["observation_source"] == "costmap":
                 self.free_subgoal = int(rec["subgoal"])
             else:
-                self.put(P.SUBGOAL, rec["key"], rec)
+                self.put(wire.SUBGOAL, rec["key"], rec)
 
     def _on_costmap(self, msg) -> None:
         """Free-running: act on each costmap update (no environment node, no lock-step)."""
@@ -124,7 +126,7 @@ class SubControllerNode(_Controller):
         if obs is None:
             return
         self.costmaps += 1
-        key = P.key_of(msg.header.stamp) or self.costmaps
+        key = wire.key_of(msg.header.stamp) or self.costmaps
         x = obs
         if self.spec.hierarchical:
             if self.free_subgoal < 0:
@@ -136,52 +138,52 @@ class SubControllerNode(_Controller):
                     msg, robot_xy=self.goals.poses[self.free_subgoal][:2], view_cells=view)
             x = stack_subgoal(obs, self.subgoal_image)
         action = int(self.policy.act(x[None], self.net.epsilon, self.net.rng)[0])
-        self.pub_action.publish(P.make_record(self.node, P.INTS, P.ACTION_FIELDS, [key, action]))
+        self.pub_action.publish(wire.make_record(self.node, wire.INTS, wire.ACTION_FIELDS, [key, action]))
         if self.pub_cmd is not None:
             self.pub_cmd.publish(self.actions.twist_msg(self.node, action, key))
 
     def _on_critic(self, msg) -> None:
-        rec = self.decode(P.CRITIC, lambda: P.read_record(msg, P.CRITIC_FIELDS))
+        rec = self.decode(wire.CRITIC, lambda: wire.read_record(msg, wire.CRITIC_FIELDS))
         if rec is not None:
-            self.put(P.CRITIC, rec["key"], rec)
+            self.put(wire.CRITIC, rec["key"], rec)
 
     def received(self, step: dict) -> None:
         """hDRQNv2: where an option may end, hand the meta-controller our LSTM state after the
         previous action (its input), before the critic has even decided."""
         may_end = step["t"] > 0 and (step["decision_point"] or done(step))
         if self.pub_state is not None and may_end and int(step["prev_key"]) == self.acted_key:
-            self.pub_state.publish(P.make_state(self.node, self.acted_key, self.policy.sub_end_state()[0]))
+            self.pub_state.publish(wire.make_state(self.node, self.acted_key, self.policy.sub_end_state()[0]))
 
     def ready(self, step: dict) -> bool:
         key = int(step["key"])
         if done(step):
             return True
-        if not self.inbox.has(P.OBSERVATION, key):
+        if not self.inbox.has(wire.OBSERVATION, key):
             return False
         if not self.spec.hierarchical:
             return True
         starts = self.option_starts(key)
         if not starts:
             return starts is not None
-        return self.inbox.has(P.SUBGOAL, key) and self.inbox.has(P.SUBGOAL_IMAGES, key)
+        return self.inbox.has(wire.SUBGOAL, key) and self.inbox.has(wire.SUBGOAL_IMAGES, key)
 
     def process(self, step: dict) -> list:
         if done(step):
             return []
         key = int(step["key"])
-        obs = self.inbox.get(P.OBSERVATION, key)
+        obs = self.inbox.get(wire.OBSERVATION, key)
         if step["t"] == 0:
             self.policy.start_episodes(_ONE)
         x = obs
         if self.spec.hierarchical:
             if self.option_starts(key):
-                g = int(self.inbox.get(P.SUBGOAL, key)["subgoal"])
+                g = int(self.inbox.get(wire.SUBGOAL, key)["subgoal"])
                 self.policy.start_options(_ONE, np.array([g]))
-                self.subgoal_image = self.inbox.get(P.SUBGOAL_IMAGES, key)[g * OBS_SIZE:(g + 1) * OBS_SIZE]
+                self.subgoal_image = self.inbox.get(wire.SUBGOAL_IMAGES, key)[g * OBS_SIZE:(g + 1) * OBS_SIZE]
             x = stack_subgoal(obs, self.subgoal_image)
         action = int(self.policy.act(x[None], self.net.epsilon, self.net.rng)[0])
         self.acted_key = key
-        replies = [(self.pub_action, P.make_record(self.node, P.INTS, P.ACTION_FIELDS, [key, action]))]
+        replies = [(self.pub_action, wire.make_record(self.node, wire.INTS, wire.ACTION_FIELDS, [key, action]))]
         if self.pub_cmd is not None:
             replies.append((self.pub_cmd, self.actions.twist_msg(self.node, action, key)))
         return replies
@@ -206,22 +208,23 @@ class MetaControllerNode(_Controller):
         node, p = self.node, self.params
         self.goals = nav.SubgoalTable.load(p["subgoal_table"], self.net.num_subgoals) if p["subgoal_table"] else None
         self.pub_goal = node.create_publisher(nav.POSE_STAMPED, p["goal_pose_topic"]) if self.goals else None
-        self.pub_subgoal = node.create_publisher(P.INTS, P.SUBGOAL, P.STEP_QOS)
-        node.create_subscription(P.FLOATS, P.CRITIC, self._on_critic, P.STEP_QOS)
+        self.pub_subgoal = node.create_publisher(wire.INTS, wire.SUBGOAL, wire.STEP_QOS)
+        node.create_subscription(wire.FLOATS, wire.CRITIC, self._on_critic, wire.STEP_QOS)
         if self.spec.meta_input == "state":
-            node.create_subscription(P.FLOATS, P.SUB_STATE, self._on_sub_state, P.STEP_QOS)
+            node.create_subscription(wire.FLOATS, wire.SUB_STATE, self._on_sub_state, wire.STEP_QOS)
         else:
-            node.create_subscription(P.IMAGE, P.OBSERVATION, lambda m: self._on_image(P.OBSERVATION, m), P.STEP_QOS)
+            node.create_subscription(wire.IMAGE, wire.OBSERVATION, lambda m: self._on_image(wire.OBSERVATION, m),
+                                     wire.STEP_QOS)
 
     def _on_critic(self, msg) -> None:
-        rec = self.decode(P.CRITIC, lambda: P.read_record(msg, P.CRITIC_FIELDS))
+        rec = self.decode(wire.CRITIC, lambda: wire.read_record(msg, wire.CRITIC_FIELDS))
         if rec is not None:
-            self.put(P.CRITIC, rec["key"], rec)
+            self.put(wire.CRITIC, rec["key"], rec)
 
     def _on_sub_state(self, msg) -> None:
-        got = self.decode(P.SUB_STATE, lambda: P.read_state(msg, lstm_state_size))
+        got = self.decode(wire.SUB_STATE, lambda: wire.read_state(msg, lstm_state_size))
         if got is not None:
-            self.put(P.SUB_STATE, *got)
+            self.put(wire.SUB_STATE, *got)
 
     def ready(self, step: dict) -> bool:
         key, prev = int(step["key"]), int(step["prev_key"])
@@ -231,8 +234,8 @@ class MetaControllerNode(_Controller):
         if not starts:
             return starts is not None
         if self.spec.meta_input == "image":
-            return self.inbox.has(P.OBSERVATION, key)
-        return step["t"] == 0 or self.inbox.has(P.SUB_STATE, prev)
+            return self.inbox.has(wire.OBSERVATION, key)
+        return step["t"] == 0 or self.inbox.has(wire.SUB_STATE, prev)
 
     def process(self, step: dict) -> list:
         """A ``subgoal`` (and ``goal_pose``) when an option starts; nothing on other steps."""
@@ -243,14 +246,14 @@ class MetaControllerNode(_Controller):
         if step["t"] == 0:
             self.policy.start_episodes(_ONE)
         else:  # the previous option ended: where it stands, and (hDRQNv2) the sub-controller's state
-            sub_end = self.inbox.get(P.SUB_STATE, int(step["prev_key"]))[None] if state_input else None
+            sub_end = self.inbox.get(wire.SUB_STATE, int(step["prev_key"]))[None] if state_input else None
             self.policy.end_options(_ONE, np.array([int(step["at_subgoal"])]), sub_end)
-        obs = None if state_input else self.inbox.get(P.OBSERVATION, key)[None]
+        obs = None if state_input else self.inbox.get(wire.OBSERVATION, key)[None]
         g, _ = self.policy.choose_subgoals(_ONE, obs, self.net.epsilon, self.net.rng)
         subgoal = int(g[0])
-        replies = [(self.pub_subgoal, P.make_record(self.node, P.INTS, P.SUBGOAL_FIELDS, [key, subgoal, 1]))]
+        replies = [(self.pub_subgoal, wire.make_record(self.node, wire.INTS, wire.SUBGOAL_FIELDS, [key, subgoal, 1]))]
         if self.pub_goal is not None:
-            stamp = P.Stamp.of(key)
+            stamp = wire.Stamp.of(key)
             replies.append((self.pub_goal, self.goals.pose_msg(self.node, subgoal, stamp.sec, stamp.nanosec)))
         return replies
 

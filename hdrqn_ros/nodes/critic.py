@@ -15,7 +15,7 @@ import numpy as np
 
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.middleware import Middleware
-from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol import wire
 from hdrqn_ros.nodes.common import ENV_DEFAULTS, env_kwargs, run_node
 from hdrqn_ros.protocol.follower import StepFollower, done
 
@@ -27,36 +27,36 @@ class CriticNode(StepFollower):
         p = node.declare_parameters(dict(ENV_DEFAULTS))
         probe = make_batch(p["env"], 1, **env_kwargs(p["env"], p["view"]))
         self.critic, self.num_subgoals = probe.critic(), probe.num_subgoals
-        self.pub = node.create_publisher(P.FLOATS, P.CRITIC, P.STEP_QOS)
-        node.create_subscription(P.FLOATS, P.ENV_STEP, self.on_env_step, P.STEP_QOS)
-        node.create_subscription(P.INTS, P.SUBGOAL, self._on_subgoal, P.STEP_QOS)
+        self.pub = node.create_publisher(wire.FLOATS, wire.CRITIC, wire.STEP_QOS)
+        node.create_subscription(wire.FLOATS, wire.ENV_STEP, self.on_env_step, wire.STEP_QOS)
+        node.create_subscription(wire.INTS, wire.SUBGOAL, self._on_subgoal, wire.STEP_QOS)
         self.option_subgoal = -1  # the current option's subgoal (-1: unknown)
         self.choice_at = 0  # key at which we announced option_done: its subgoal is the next option's
 
     def _on_subgoal(self, msg) -> None:
-        rec = self.decode(P.SUBGOAL, lambda: P.read_record(msg, P.SUBGOAL_FIELDS, np.int64))
-        if rec is not None and self.decode(P.SUBGOAL, lambda: P.check_index(rec["subgoal"], self.num_subgoals,
+        rec = self.decode(wire.SUBGOAL, lambda: wire.read_record(msg, wire.SUBGOAL_FIELDS, np.int64))
+        if rec is not None and self.decode(wire.SUBGOAL, lambda: wire.check_index(rec["subgoal"], self.num_subgoals,
                                                                              "subgoal")) is not None:
-            self.put(P.SUBGOAL, rec["key"], rec["subgoal"])
+            self.put(wire.SUBGOAL, rec["key"], rec["subgoal"])
 
     def ready(self, step: dict) -> bool:
         prev = int(step["prev_key"])
-        return step["t"] == 0 or prev != self.choice_at or self.inbox.has(P.SUBGOAL, prev)
+        return step["t"] == 0 or prev != self.choice_at or self.inbox.has(wire.SUBGOAL, prev)
 
     def process(self, step: dict) -> list:
         key, prev = int(step["key"]), int(step["prev_key"])
         if step["t"] > 0 and prev == self.choice_at:
-            self.option_subgoal = int(self.inbox.get(P.SUBGOAL, prev))
+            self.option_subgoal = int(self.inbox.get(wire.SUBGOAL, prev))
         if step["t"] == 0:
             values = [key, 0.0, 0.0, 1.0, -1.0]
         elif self.option_subgoal < 0:  # (re)started mid-option: end it where a new one can start
             values = [key, 0.0, 0.0, float(step["decision_point"] or done(step)), -1.0]
         else:
-            result = self.critic.evaluate(P.step_batch(step), np.array([self.option_subgoal]))
+            result = self.critic.evaluate(wire.step_batch(step), np.array([self.option_subgoal]))
             values = [key, result.intrinsic[0], result.reached[0], result.option_done[0], self.option_subgoal]
         if values[3] and not done(step):
             self.choice_at, self.option_subgoal = key, -1
-        return [(self.pub, P.make_record(self.node, P.FLOATS, P.CRITIC_FIELDS, values))]
+        return [(self.pub, wire.make_record(self.node, wire.FLOATS, wire.CRITIC_FIELDS, values))]
 
     def reset(self) -> None:
         super().reset()

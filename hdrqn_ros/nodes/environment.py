@@ -17,7 +17,7 @@ import numpy as np
 from hdrqn_ros.envs.domain import NO_SUBGOAL
 from hdrqn_ros.envs.registration import MONTEZUMA_IDS, make_batch
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
-from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol import wire
 from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, env_kwargs, run_node
 from hdrqn_ros.throttle import Throttle
 
@@ -40,13 +40,13 @@ class EnvironmentNode:
         if self.period_ns <= 0 or p["action_timeout"] <= 0:
             raise NodeConfigError("step_period and action_timeout must be > 0")
         self.batch = make_batch(p["env"], 1, **env_kwargs(p["env"], p["view"]))
-        self.pub_obs = node.create_publisher(P.IMAGE, P.OBSERVATION, P.STEP_QOS)
-        self.pub_images = node.create_publisher(P.IMAGE, P.SUBGOAL_IMAGES, P.STEP_QOS)
-        self.pub_step = node.create_publisher(P.FLOATS, P.ENV_STEP, P.STEP_QOS)
-        self.pub_pose = node.create_publisher(P.POSE_STAMPED, P.POSE)
-        self.pub_clock = node.create_publisher(P.CLOCK_TYPE, P.CLOCK) if p["publish_clock"] else None
-        node.create_subscription(P.INTS, P.ACTION, self._on_action, P.STEP_QOS)
-        node.create_subscription(P.FLOATS, P.CREDIT, self._on_credit, LATCHED_QOS)
+        self.pub_obs = node.create_publisher(wire.IMAGE, wire.OBSERVATION, wire.STEP_QOS)
+        self.pub_images = node.create_publisher(wire.IMAGE, wire.SUBGOAL_IMAGES, wire.STEP_QOS)
+        self.pub_step = node.create_publisher(wire.FLOATS, wire.ENV_STEP, wire.STEP_QOS)
+        self.pub_pose = node.create_publisher(wire.POSE_STAMPED, wire.POSE)
+        self.pub_clock = node.create_publisher(wire.CLOCK_TYPE, wire.CLOCK) if p["publish_clock"] else None
+        node.create_subscription(wire.INTS, wire.ACTION, self._on_action, wire.STEP_QOS)
+        node.create_subscription(wire.FLOATS, wire.CREDIT, self._on_credit, LATCHED_QOS)
         node.create_timer(min(0.5, p["action_timeout"]), self._watchdog)
         self.credit = 0  # the learner lets this env take steps while self.steps < credit
         self.steps = 0
@@ -56,15 +56,15 @@ class EnvironmentNode:
         self.action_time = 0.0  # wall clock when pending_action arrived (step_log)
         self.finished = False
         self.step_log = open(p["step_log"], "a", buffering=1) if p["step_log"] else None
-        self.rejected_actions = Throttle(node.logger, f"rejected a message on {self._topic(P.ACTION)}")
-        self.rejected_credit = Throttle(node.logger, f"rejected a message on {self._topic(P.CREDIT)}")
+        self.rejected_actions = Throttle(node.logger, f"rejected a message on {self._topic(wire.ACTION)}")
+        self.rejected_credit = Throttle(node.logger, f"rejected a message on {self._topic(wire.CREDIT)}")
         self.obs = self.batch.reset(seed=p["seed"])[0]
         self._begin_episode()
 
     # -- publishing ------------------------------------------------------------------------
     def _begin_episode(self) -> None:
         self.t = 0
-        self.step_record = dict.fromkeys(P.STEP_FIELDS, 0.0)
+        self.step_record = dict.fromkeys(wire.STEP_FIELDS, 0.0)
         self.step_record.update(prev_key=0, env_steps=self.steps, episode=self.episode, at_subgoal=NO_SUBGOAL,
                                 decision_point=1)
         self._new_key()
@@ -78,14 +78,15 @@ class EnvironmentNode:
     def _publish(self) -> None:
         node, key, frame = self.node, self.key, self.params["frame_id"]
         # env_step first: the critic needs only it, and the others wait for the critic
-        self.pub_step.publish(P.make_record(node, P.FLOATS, P.STEP_FIELDS, [self.step_record[f] for f in P.STEP_FIELDS]))
-        self.pub_obs.publish(P.make_image(node, key, self.obs, frame))
+        self.pub_step.publish(wire.make_record(node, wire.FLOATS, wire.STEP_FIELDS,
+                                               [self.step_record[f] for f in wire.STEP_FIELDS]))
+        self.pub_obs.publish(wire.make_image(node, key, self.obs, frame))
         if self.step_record["decision_point"]:
             images = [self.batch.subgoal_images(np.array([g]))[0] for g in range(self.batch.num_subgoals)]
-            self.pub_images.publish(P.make_image(node, key, np.concatenate(images), frame))
+            self.pub_images.publish(wire.make_image(node, key, np.concatenate(images), frame))
         if self.pub_clock is not None:
-            self.pub_clock.publish(node.msg(P.CLOCK_TYPE)(clock=P.make_time(node, key)))
-        self.pub_pose.publish(P.make_pose(node, key, frame, *self._pose_xy()))
+            self.pub_clock.publish(node.msg(wire.CLOCK_TYPE)(clock=wire.make_time(node, key)))
+        self.pub_pose.publish(wire.make_pose(node, key, frame, *self._pose_xy()))
 
     def _pose_xy(self) -> tuple[float, float]:
         """Agent position for ``pose``: grid (column, row) in cells; Montezuma RAM (x, y) in pixels."""
@@ -95,9 +96,9 @@ class EnvironmentNode:
     # -- stepping ----------------------------------------------------------------------------
     def _on_action(self, msg) -> None:
         try:
-            rec = P.read_record(msg, P.ACTION_FIELDS, np.int64)
-            action = P.check_index(rec["action"], self.batch.num_actions, "action")
-        except P.ProtocolError as exc:
+            rec = wire.read_record(msg, wire.ACTION_FIELDS, np.int64)
+            action = wire.check_index(rec["action"], self.batch.num_actions, "action")
+        except wire.ProtocolError as exc:
             self.rejected_actions.warn(exc)
             return
         if rec["key"] != self.key or self.pending_action is not None:
@@ -108,8 +109,8 @@ class EnvironmentNode:
 
     def _on_credit(self, msg) -> None:
         try:
-            credit = P.read_record(msg, P.CREDIT_FIELDS)
-        except P.ProtocolError as exc:
+            credit = wire.read_record(msg, wire.CREDIT_FIELDS)
+        except wire.ProtocolError as exc:
             self.rejected_credit.warn(exc)
             return
         self.credit = int(credit["credit_steps"])
@@ -122,16 +123,16 @@ class EnvironmentNode:
             return
         action, self.pending_action = self.pending_action, None
         prev_key = self.key
-        self.obs_digest_before = P.obs_digest(self.obs) if self.step_log is not None else ""
+        self.obs_digest_before = wire.obs_digest(self.obs) if self.step_log is not None else ""
         step = self.batch.step(np.array([action]))
         self.steps += 1
         self.t += 1
         self.obs = step.obs[0]
         self.step_record = {"prev_key": prev_key, "env_steps": self.steps, "episode": self.episode, "t": self.t,
-                            "action": action, **P.step_outcome(step, 0)}
+                            "action": action, **wire.step_outcome(step, 0)}
         self._new_key()
         if self.step_log is not None:
-            self.step_log.write(json.dumps({**self.step_record, "key": self.key, "next_obs": P.obs_digest(self.obs),
+            self.step_log.write(json.dumps({**self.step_record, "key": self.key, "next_obs": wire.obs_digest(self.obs),
                                             "obs": self.obs_digest_before, "action_time": self.action_time,
                                             "wall_time": time.time()}) + "\n")
         self._publish()
@@ -157,11 +158,11 @@ class EnvironmentNode:
         if self.pending_action is not None:
             self.node.logger.warning("step t=%d of episode %d waits for the learner: %d steps taken, credit %d "
                                      "(is the learner running? topic %s); re-publishing the step", self.t,
-                                     self.episode, self.steps, self.credit, self._topic(P.CREDIT))
+                                     self.episode, self.steps, self.credit, self._topic(wire.CREDIT))
         else:
             self.node.logger.warning("no action for step t=%d of episode %d after %.1f s on %s (is the "
                                      "sub_controller running?); re-publishing the step", self.t, self.episode,
-                                     waited, self._topic(P.ACTION))
+                                     waited, self._topic(wire.ACTION))
         self._publish()  # a (re)started peer learns where the loop is
         self.published_at = time.monotonic()
 

@@ -3,7 +3,7 @@
 For each environment group (a namespace in ``groups``) a
 :class:`~hdrqn_ros.protocol.group.GroupAssembler` joins the group's messages by step key
 into the same :class:`StepRecord` rows the in-process rollout produces, and the same
-:class:`EpisodeRecorder` turns them into replay episodes (recorded, when ``record``, by
+:class:`EpisodeBuilder` turns them into replay episodes (recorded, when ``record``, by
 :class:`~hdrqn_ros.recording.received.GraphRecorder`).
 A training thread runs the :class:`~hdrqn_ros.training.learner.Learner` (one update per
 controller every ``update_every`` env steps), publishes weights every ``weights_every``
@@ -26,7 +26,7 @@ import numpy as np
 from hdrqn_ros.agents.weights import encode_weights
 from hdrqn_ros.config import build_config, parse_set
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
-from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.group import GroupAssembler
 from hdrqn_ros.recording.received import GraphRecorder, earlier_recordings
 from hdrqn_ros.recording.transitions import read_episodes
@@ -101,9 +101,9 @@ class LearnerNode:
         self.recorder = GraphRecorder(node, p["record"], cfg, p["record_split_mb"]) if p["record"] else None
         self.groups = [GroupAssembler(node, ns, self.learner, self.episodes, self.transition_log, self.recorder)
                        for ns in namespaces]
-        self.weight_pubs = {c.name: node.create_publisher(P.BYTES, P.WEIGHTS[c.name], LATCHED_QOS)
+        self.weight_pubs = {c.name: node.create_publisher(wire.BYTES, wire.WEIGHTS[c.name], LATCHED_QOS)
                             for c in self.learner.agent.controllers}
-        self.status_pub = node.create_publisher(P.STRING, P.STATUS, LATCHED_QOS)
+        self.status_pub = node.create_publisher(wire.STRING, wire.STATUS, LATCHED_QOS)
         self.epoch = time.time()
         self.learner.begin()
         self.finished = False
@@ -165,12 +165,12 @@ class LearnerNode:
         learner = self.learner
         while learner.episodes < learner.cfg.episodes:
             try:
-                item = self.episodes.get_nowait()
+                episode = self.episodes.get_nowait()
             except queue.Empty:
                 return
             eps = learner.epsilons()
-            learner.store([item])
-            learner.log_episode(item[-1], *eps)
+            learner.store([episode])
+            learner.log_episode(episode.stats, *eps)
 
     def _grant_credit(self, force: bool = False) -> None:
         learner = self.learner
@@ -182,7 +182,7 @@ class LearnerNode:
     def _publish_weights(self) -> None:
         updates = self.learner.agent.sub.updates
         for c in self.learner.agent.controllers:
-            self.weight_pubs[c.name].publish(P.make_weights(self.node, encode_weights(c.online), updates))
+            self.weight_pubs[c.name].publish(wire.make_weights(self.node, encode_weights(c.online), updates))
 
     def _finish(self) -> None:
         learner, cfg = self.learner, self.learner.cfg
@@ -208,7 +208,7 @@ class LearnerNode:
 
     def _status(self) -> None:
         text = json.dumps(self.status())
-        self.status_pub.publish(self.node.msg(P.STRING)(data=text))
+        self.status_pub.publish(self.node.msg(wire.STRING)(data=text))
         path = self.learner.run_dir / "status.json"
         tmp = path.with_suffix(".tmp")
         tmp.write_text(text)

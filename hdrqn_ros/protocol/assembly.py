@@ -2,8 +2,8 @@
 
 :class:`TransitionAssembler` takes the group's decoded per-step messages (from the learner
 node's subscriptions or from a bag), joins them by step key into the same
-:class:`~hdrqn_ros.training.rollout.StepRecord` rows the in-process rollout produces, and
-feeds the same :class:`~hdrqn_ros.training.episodes.EpisodeRecorder`; ``on_episode`` gets
+:class:`~hdrqn_ros.agents.policy.StepRecord` rows the in-process rollout produces, and
+feeds the same :class:`~hdrqn_ros.training.episodes.EpisodeBuilder`; ``on_episode`` gets
 each finished episode. It starts using a group's data at an episode boundary.
 """
 from __future__ import annotations
@@ -20,15 +20,15 @@ from hdrqn_ros.agents.policy import StepRecord
 from hdrqn_ros.config import TrainConfig, batch_class
 from hdrqn_ros.critic import sub_controller_terminal
 from hdrqn_ros.envs.domain import OBS_SIZE
-from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.follower import StepFollower, done
-from hdrqn_ros.training.episodes import EpisodeRecorder
+from hdrqn_ros.training.episodes import EpisodeBuilder, FinishedEpisode
 
 
 def _critic_of(step: dict, critic: dict) -> dict:
     """``critic`` (the verdict on ``step``) if it ends the option where the episode ends."""
     if done(step) and not critic["option_done"]:
-        raise P.ProtocolError(f"the episode ends at step key {int(step['key'])} but its critic option_done is 0")
+        raise wire.ProtocolError(f"the episode ends at step key {int(step['key'])} but its critic option_done is 0")
     return critic
 
 
@@ -38,14 +38,14 @@ class TransitionAssembler(StepFollower):
     skip_stale = False  # a transition needs every step of its episode
 
     def __init__(self, namespace: str, cfg: TrainConfig, num_subgoals: int,
-                 on_episode: Callable[[str, object, object, object], None], node=None, logger=None, log=None):
+                 on_episode: Callable[[FinishedEpisode], None], node=None, logger=None, log=None):
         super().__init__(node, logger=logger)
         self.ns = namespace.rstrip("/")
         self.on_episode = on_episode
         self.spec = ALGO_SPECS[cfg.algo]
         self.num_subgoals = num_subgoals
         self.num_actions = batch_class(cfg.env).num_actions
-        self.recorder_args = (1, self.spec.hierarchical, cfg.sub.gamma, cfg.meta.gamma, cfg.smdp_discount)
+        self.builder_args = (1, self.spec.hierarchical, cfg.sub.gamma, cfg.meta.gamma, cfg.smdp_discount)
         self.env_steps_seen = 0  # the env's own step count, from its latest env_step
         self.transitions = 0
         self.skipped = 0  # steps seen while waiting for an episode boundary
@@ -58,28 +58,29 @@ class TransitionAssembler(StepFollower):
 
     def inputs(self) -> dict[str, tuple[str, Callable]]:
         """The group's topics this assembler reads: relative name -> (type, handler(msg))."""
-        out = {P.ENV_STEP: (P.FLOATS, self.on_env_step),
-               P.OBSERVATION: (P.IMAGE, lambda m: self._image(P.OBSERVATION, m, 1)),
-               P.ACTION: (P.INTS, lambda m: self._ints(P.ACTION, P.ACTION_FIELDS, m, self.num_actions))}
+        out = {wire.ENV_STEP: (wire.FLOATS, self.on_env_step),
+               wire.OBSERVATION: (wire.IMAGE, lambda m: self._image(wire.OBSERVATION, m, 1)),
+               wire.ACTION: (wire.INTS, lambda m: self._ints(wire.ACTION, wire.ACTION_FIELDS, m, self.num_actions))}
         if self.spec.hierarchical:
-            out[P.SUBGOAL_IMAGES] = (P.IMAGE, lambda m: self._image(P.SUBGOAL_IMAGES, m, self.num_subgoals))
-            out[P.SUBGOAL] = (P.INTS, lambda m: self._ints(P.SUBGOAL, P.SUBGOAL_FIELDS, m, self.num_subgoals))
-            out[P.CRITIC] = (P.FLOATS, self._critic)
+            out[wire.SUBGOAL_IMAGES] = (wire.IMAGE, lambda m: self._image(wire.SUBGOAL_IMAGES, m, self.num_subgoals))
+            out[wire.SUBGOAL] = (wire.INTS,
+                                 lambda m: self._ints(wire.SUBGOAL, wire.SUBGOAL_FIELDS, m, self.num_subgoals))
+            out[wire.CRITIC] = (wire.FLOATS, self._critic)
         if self.spec.meta_input == "state":
-            out[P.SUB_STATE] = (P.FLOATS, self._sub_state)
+            out[wire.SUB_STATE] = (wire.FLOATS, self._sub_state)
         return out
 
     # -- inputs --------------------------------------------------------------------------------
     def _image(self, topic: str, msg, rows: int) -> None:
-        got = self.decode(self.topic(topic), lambda: P.read_image(msg, OBS_SIZE * rows, OBS_SIZE))
+        got = self.decode(self.topic(topic), lambda: wire.read_image(msg, OBS_SIZE * rows, OBS_SIZE))
         if got is not None:
             self.put(topic, *got)
 
     def _ints(self, topic: str, fields, msg, n: int) -> None:
         """An ``action`` or ``subgoal`` record; its value (field ``topic``) must be in [0, n)."""
         def read() -> dict:
-            rec = P.read_record(msg, fields, np.int64)
-            P.check_index(rec[topic], n, topic)
+            rec = wire.read_record(msg, fields, np.int64)
+            wire.check_index(rec[topic], n, topic)
             return rec
 
         rec = self.decode(self.topic(topic), read)
@@ -87,14 +88,14 @@ class TransitionAssembler(StepFollower):
             self.put(topic, rec["key"], rec)
 
     def _critic(self, msg) -> None:
-        rec = self.decode(self.topic(P.CRITIC), lambda: P.read_record(msg, P.CRITIC_FIELDS))
+        rec = self.decode(self.topic(wire.CRITIC), lambda: wire.read_record(msg, wire.CRITIC_FIELDS))
         if rec is not None:
-            self.put(P.CRITIC, rec["key"], rec)
+            self.put(wire.CRITIC, rec["key"], rec)
 
     def _sub_state(self, msg) -> None:
-        got = self.decode(self.topic(P.SUB_STATE), lambda: P.read_state(msg, lstm_state_size))
+        got = self.decode(self.topic(wire.SUB_STATE), lambda: wire.read_state(msg, lstm_state_size))
         if got is not None:
-            self.put(P.SUB_STATE, *got)
+            self.put(wire.SUB_STATE, *got)
 
     def received(self, step: dict) -> None:
         self.env_steps_seen = int(step["env_steps"])
@@ -102,23 +103,23 @@ class TransitionAssembler(StepFollower):
     # -- assembly -----------------------------------------------------------------------------------
     def ready(self, step: dict) -> bool:
         key, prev, box = int(step["key"]), int(step["prev_key"]), self.inbox
-        if not box.has(P.OBSERVATION, key):
+        if not box.has(wire.OBSERVATION, key):
             return False
         if step["t"] == 0 or not self.open:
             return True
-        if not box.has(P.ACTION, prev):
+        if not box.has(wire.ACTION, prev):
             return False
         if not self.spec.hierarchical:
             return True
-        critic = box.get(P.CRITIC, key)
+        critic = box.get(wire.CRITIC, key)
         if critic is None:
             return False
-        if self.option_next and not (box.has(P.SUBGOAL, prev) and box.has(P.SUBGOAL_IMAGES, prev)):
+        if self.option_next and not (box.has(wire.SUBGOAL, prev) and box.has(wire.SUBGOAL_IMAGES, prev)):
             return False
-        return not (self.spec.meta_input == "state" and critic["option_done"]) or box.has(P.SUB_STATE, prev)
+        return not (self.spec.meta_input == "state" and critic["option_done"]) or box.has(wire.SUB_STATE, prev)
 
     def process(self, step: dict) -> list:
-        key, obs = int(step["key"]), self.inbox.get(P.OBSERVATION, int(step["key"]))
+        key, obs = int(step["key"]), self.inbox.get(wire.OBSERVATION, int(step["key"]))
         if step["t"] == 0:
             if self.open:
                 self.lost_episodes += 1
@@ -136,7 +137,7 @@ class TransitionAssembler(StepFollower):
     def _begin(self, key: int, obs: np.ndarray) -> None:
         self.open = True
         self.option_next = True  # an option starts at the episode's first step
-        self.recorder = EpisodeRecorder(*self.recorder_args)
+        self.builder = EpisodeBuilder(*self.builder_args)
         self.prev_obs = obs
         self.subgoal_image = np.zeros_like(obs)
         self.option_extrinsic = 0.0
@@ -145,17 +146,17 @@ class TransitionAssembler(StepFollower):
 
     def _transition(self, step: dict, obs: np.ndarray) -> None:
         box, key, prev = self.inbox, int(step["key"]), int(step["prev_key"])
-        action = int(box.get(P.ACTION, prev)["action"])
-        env = P.step_batch(step, obs)
+        action = int(box.get(wire.ACTION, prev)["action"])
+        env = wire.step_batch(step, obs)
         if self.spec.hierarchical:
-            critic = self.decode(self.topic(P.CRITIC), lambda: _critic_of(step, box.get(P.CRITIC, key)))
+            critic = self.decode(self.topic(wire.CRITIC), lambda: _critic_of(step, box.get(wire.CRITIC, key)))
             if critic is None:  # the messages contradict each other: the episode cannot be assembled
                 self.lost_episodes += 1
                 self.open = False
                 return
             new_option = self.option_next
             if new_option:  # the meta-controller publishes a subgoal when an option starts
-                self.option_subgoal = int(box.get(P.SUBGOAL, prev)["subgoal"])
+                self.option_subgoal = int(box.get(wire.SUBGOAL, prev)["subgoal"])
             subgoal = self.option_subgoal
             intrinsic, reached, option_done = critic["intrinsic"], bool(critic["reached"]), bool(critic["option_done"])
             self.option_next = option_done
@@ -166,7 +167,7 @@ class TransitionAssembler(StepFollower):
         meta_input = None
         if new_option:
             if self.spec.hierarchical:
-                images = box.get(P.SUBGOAL_IMAGES, prev)
+                images = box.get(wire.SUBGOAL_IMAGES, prev)
                 self.subgoal_image = images[subgoal * OBS_SIZE:(subgoal + 1) * OBS_SIZE]
                 meta_input = (self.last_sub_state if self.spec.meta_input == "state" else self.prev_obs)[None].copy()
             self.option_extrinsic, self.option_steps = 0.0, 0
@@ -175,7 +176,7 @@ class TransitionAssembler(StepFollower):
         meta_next = None
         if self.spec.hierarchical and option_done:
             if self.spec.meta_input == "state":
-                self.last_sub_state = box.get(P.SUB_STATE, prev)
+                self.last_sub_state = box.get(wire.SUB_STATE, prev)
                 meta_next = self.last_sub_state[None].copy()
             else:
                 meta_next = obs[None].copy()
@@ -188,8 +189,8 @@ class TransitionAssembler(StepFollower):
         self.transitions += 1
         if self.log is not None:
             self._log(step, action, subgoal, intrinsic, obs)
-        for _, sub_ep, meta_ep, stats in self.recorder.add(record):
-            self.on_episode(self.ns or "/", sub_ep, meta_ep, stats)
+        for episode in self.builder.add(record):
+            self.on_episode(episode._replace(group=self.ns or "/"))
             self.open = False
         self.prev_obs = obs
 
@@ -197,7 +198,7 @@ class TransitionAssembler(StepFollower):
         row = {"group": self.ns or "/", **{f: step[f] for f in ("key", "prev_key", "episode", "t", "extrinsic",
                                                                 "classical", "terminated", "truncated")},
                "action": action, "subgoal": subgoal, "intrinsic": intrinsic,
-               "obs": P.obs_digest(self.prev_obs), "next_obs": P.obs_digest(obs),
+               "obs": wire.obs_digest(self.prev_obs), "next_obs": wire.obs_digest(obs),
                "wall_time": time.time()}  # when assembled (wall clock): latency vs the step_log's wall_time
         self.log.write(json.dumps(row) + "\n")
 

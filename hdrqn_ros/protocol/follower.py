@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections import OrderedDict, deque
 from typing import Any, Callable
 
-from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol import wire
 from hdrqn_ros.throttle import Throttle
 
 DEFAULT_CAPACITY = 512
@@ -54,7 +54,7 @@ class StepFollower:
 
     Subclasses implement ``ready(step) -> bool`` and ``process(step) -> list of
     (publisher, message)`` (the replies, remembered for repeats) and may override
-    ``reset()``. ``step`` is the ``env_step`` record as a dict of :data:`P.STEP_FIELDS`."""
+    ``reset()``. ``step`` is the ``env_step`` record as a dict of :data:`wire.STEP_FIELDS`."""
 
     skip_stale = True
     """Drop queued steps older than a step that is ready (the loop went on without them:
@@ -77,7 +77,7 @@ class StepFollower:
 
     # -- inputs ----------------------------------------------------------------------------------
     def on_env_step(self, msg) -> None:
-        step = self.decode(P.ENV_STEP, lambda: P.read_step(msg))
+        step = self.decode(wire.ENV_STEP, lambda: wire.read_step(msg))
         if step is None:
             return
         self.received(step)
@@ -106,7 +106,7 @@ class StepFollower:
         """``read()``, or ``None`` with a logged warning if the message is malformed."""
         try:
             return read()
-        except (P.ProtocolError, ValueError, TypeError, AttributeError) as exc:
+        except (wire.ProtocolError, ValueError, TypeError, AttributeError) as exc:
             if topic not in self._rejections:
                 name = self.node.resolve_topic(topic) if self.node is not None else topic
                 self._rejections[topic] = Throttle(self.logger, f"rejected a message on {name}")

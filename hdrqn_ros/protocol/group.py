@@ -8,8 +8,9 @@ import queue
 from typing import Protocol
 
 from hdrqn_ros.middleware.port import LATCHED_QOS
-from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.assembly import TransitionAssembler
+from hdrqn_ros.training.episodes import FinishedEpisode
 from hdrqn_ros.training.learner import Learner
 
 
@@ -40,15 +41,15 @@ class GroupAssembler(TransitionAssembler):
         for name, (type_name, handler) in inputs.items():
             if name in conns:
                 handler = recorder.recording(conns[name], handler)
-            node.create_subscription(type_name, self.topic(name), handler, P.STEP_QOS)
-        self.credit_pub = node.create_publisher(P.FLOATS, self.topic(P.CREDIT), LATCHED_QOS)
+            node.create_subscription(type_name, self.topic(name), handler, wire.STEP_QOS)
+        self.credit_pub = node.create_publisher(wire.FLOATS, self.topic(wire.CREDIT), LATCHED_QOS)
 
-    def _acknowledge(self, *episode) -> None:
+    def _acknowledge(self, episode: FinishedEpisode) -> None:
         """A finished episode: make its messages durable in the recording (when recording),
         count it as acknowledged, and queue it for replay."""
         if self.graph_recorder is not None and self.graph_recorder.sync():
             self.acked_episodes += 1
-            self.acked_steps += episode[-1].steps
+            self.acked_steps += episode.stats.steps
         self.episodes.put(episode)
 
     def received(self, step: dict) -> None:
@@ -68,4 +69,5 @@ class GroupAssembler(TransitionAssembler):
         if values == self.last_credit and not force:
             return
         self.last_credit = values
-        self.credit_pub.publish(P.make_record(self.node, P.FLOATS, P.CREDIT_FIELDS, [*values, self.last_key, epoch]))
+        self.credit_pub.publish(wire.make_record(self.node, wire.FLOATS, wire.CREDIT_FIELDS,
+                                                 [*values, self.last_key, epoch]))

@@ -26,9 +26,10 @@ from hdrqn_ros.agents.policy import StepRecord
 from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.envs.domain import NO_SUBGOAL
 from hdrqn_ros.envs.registration import MONTEZUMA_IDS
-from hdrqn_ros.protocol import wire as P
+from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.assembly import TransitionAssembler
 from hdrqn_ros.recording.bag import TYPESTORE, BagError, BagWriter, bag_custom_data, open_bag, read_messages
+from hdrqn_ros.training.episodes import FinishedEpisode
 from hdrqn_ros.yaml_files import safe_load
 
 CONFIG_KEY = "hdrqn.config"
@@ -38,8 +39,9 @@ STEP_PERIOD_NS = 10_000_000
 """Sim time per recorded step (the environment node's default ``step_period``, 0.01 s)."""
 FRAME_ID = "hdrqn_map"
 
-GROUP_TOPICS = {P.ENV_STEP: P.FLOATS, P.OBSERVATION: P.IMAGE, P.ACTION: P.INTS, P.POSE: P.POSE_STAMPED,
-                P.CRITIC: P.FLOATS, P.SUBGOAL: P.INTS, P.SUBGOAL_IMAGES: P.IMAGE, P.SUB_STATE: P.FLOATS}
+GROUP_TOPICS = {wire.ENV_STEP: wire.FLOATS, wire.OBSERVATION: wire.IMAGE, wire.ACTION: wire.INTS,
+                wire.POSE: wire.POSE_STAMPED, wire.CRITIC: wire.FLOATS, wire.SUBGOAL: wire.INTS,
+                wire.SUBGOAL_IMAGES: wire.IMAGE, wire.SUB_STATE: wire.FLOATS}
 """A group's recorded topics and their ROS 2 types."""
 
 
@@ -59,11 +61,11 @@ class RosbagsMessages:
 def recorded_topics(algo: str) -> list[str]:
     """The per-group topics a recording of ``algo`` holds."""
     spec = ALGO_SPECS[algo]
-    names = [P.ENV_STEP, P.OBSERVATION, P.ACTION, P.POSE]
+    names = [wire.ENV_STEP, wire.OBSERVATION, wire.ACTION, wire.POSE]
     if spec.hierarchical:
-        names += [P.CRITIC, P.SUBGOAL, P.SUBGOAL_IMAGES]
+        names += [wire.CRITIC, wire.SUBGOAL, wire.SUBGOAL_IMAGES]
     if spec.meta_input == "state":
-        names.append(P.SUB_STATE)
+        names.append(wire.SUB_STATE)
     return names
 
 
@@ -82,8 +84,8 @@ class BagRecorder:
 
     def add_group(self, namespace: str, topics: list[str]) -> dict[str, int]:
         """Register a group's topics; returns topic name -> connection id."""
-        return {name: self.writer.add_topic(P.group_topic(namespace, name), GROUP_TOPICS[name],
-                                            depth=P.STEP_QOS.depth if name != P.POSE else 10)
+        return {name: self.writer.add_topic(wire.group_topic(namespace, name), GROUP_TOPICS[name],
+                                            depth=wire.STEP_QOS.depth if name != wire.POSE else 10)
                 for name in topics}
 
     def write(self, connection: int, cdr: bytes) -> None:
@@ -118,7 +120,7 @@ class TransitionRecorder:
     def __init__(self, path, cfg: TrainConfig, num_envs: int, source: str = "hdrqn train", **bag_options):
         self.bag = BagRecorder(path, cfg, source, **bag_options)
         self.spec = ALGO_SPECS[cfg.algo]
-        self.namespaces = P.group_namespaces(num_envs)
+        self.namespaces = wire.group_namespaces(num_envs)
         topics = recorded_topics(cfg.algo)
         self.conns = [self.bag.add_group(ns, topics) for ns in self.namespaces]
         self.envs = [_EnvTrack() for _ in self.namespaces]
@@ -134,9 +136,10 @@ class TransitionRecorder:
 
     def _step_record(self, i: int, values: dict) -> None:
         e = self.envs[i]
-        row = {f: 0.0 for f in P.STEP_FIELDS}
+        row = {f: 0.0 for f in wire.STEP_FIELDS}
         row.update(key=e.key, env_steps=e.env_steps, episode=e.episode, t=e.t, **values)
-        self._put(i, P.ENV_STEP, P.make_record(self.m, P.FLOATS, P.STEP_FIELDS, [row[f] for f in P.STEP_FIELDS]))
+        self._put(i, wire.ENV_STEP, wire.make_record(self.m, wire.FLOATS, wire.STEP_FIELDS,
+                                                     [row[f] for f in wire.STEP_FIELDS]))
 
     def write(self, rec: StepRecord) -> None:
         """Record one step of every environment (call after each ``Rollout.step``)."""
@@ -146,27 +149,29 @@ class TransitionRecorder:
                 e.open, e.t = True, 0
                 e.key += STEP_PERIOD_NS
                 self._step_record(i, {"prev_key": 0, "at_subgoal": NO_SUBGOAL, "decision_point": 1})
-                self._put(i, P.OBSERVATION, P.make_image(m, e.key, rec.obs[i], FRAME_ID))
+                self._put(i, wire.OBSERVATION, wire.make_image(m, e.key, rec.obs[i], FRAME_ID))
                 if self.spec.hierarchical:
-                    self._put(i, P.CRITIC, P.make_record(m, P.FLOATS, P.CRITIC_FIELDS, [e.key, 0, 0, 1, -1]))
+                    self._put(i, wire.CRITIC,
+                              wire.make_record(m, wire.FLOATS, wire.CRITIC_FIELDS, [e.key, 0, 0, 1, -1]))
             prev = e.key
-            self._put(i, P.ACTION, P.make_record(m, P.INTS, P.ACTION_FIELDS, [prev, int(rec.action[i])]))
+            self._put(i, wire.ACTION, wire.make_record(m, wire.INTS, wire.ACTION_FIELDS, [prev, int(rec.action[i])]))
             if self.spec.hierarchical and rec.new_option[i]:
-                self._put(i, P.SUBGOAL, P.make_record(m, P.INTS, P.SUBGOAL_FIELDS, [prev, int(rec.subgoal[i]), 1]))
-                self._put(i, P.SUBGOAL_IMAGES, P.make_image(m, prev, rec.all_subgoal_images[i], FRAME_ID))
+                self._put(i, wire.SUBGOAL,
+                          wire.make_record(m, wire.INTS, wire.SUBGOAL_FIELDS, [prev, int(rec.subgoal[i]), 1]))
+                self._put(i, wire.SUBGOAL_IMAGES, wire.make_image(m, prev, rec.all_subgoal_images[i], FRAME_ID))
             if self.spec.meta_input == "state" and rec.option_done[i]:
-                self._put(i, P.SUB_STATE, P.make_state(m, prev, rec.meta_next_input[i].astype(np.float64)))
+                self._put(i, wire.SUB_STATE, wire.make_state(m, prev, rec.meta_next_input[i].astype(np.float64)))
             e.key += STEP_PERIOD_NS
             e.t += 1
             e.env_steps += 1
-            self._step_record(i, {"prev_key": prev, "action": int(rec.action[i]), **P.step_outcome(env, i)})
+            self._step_record(i, {"prev_key": prev, "action": int(rec.action[i]), **wire.step_outcome(env, i)})
             if self.spec.hierarchical:
                 reached = int(env.at_subgoal[i] == rec.subgoal[i])
-                self._put(i, P.CRITIC, P.make_record(m, P.FLOATS, P.CRITIC_FIELDS, [
+                self._put(i, wire.CRITIC, wire.make_record(m, wire.FLOATS, wire.CRITIC_FIELDS, [
                     e.key, float(rec.intrinsic[i]), reached, int(rec.option_done[i]), int(rec.subgoal[i])]))
-            self._put(i, P.OBSERVATION, P.make_image(m, e.key, env.obs[i], FRAME_ID))
+            self._put(i, wire.OBSERVATION, wire.make_image(m, e.key, env.obs[i], FRAME_ID))
             a, b = (float(v) for v in env.agent_pos[i])
-            self._put(i, P.POSE, P.make_pose(m, e.key, FRAME_ID, *((b, a) if self.grid else (a, b))))
+            self._put(i, wire.POSE, wire.make_pose(m, e.key, FRAME_ID, *((b, a) if self.grid else (a, b))))
             if env.done[i]:
                 e.open = False
                 e.episode += 1
@@ -186,7 +191,7 @@ class _BagAssembler(TransitionAssembler):
     def decode(self, topic, read):
         try:
             return read()
-        except (P.ProtocolError, ValueError, TypeError, AttributeError) as exc:
+        except (wire.ProtocolError, ValueError, TypeError, AttributeError) as exc:
             raise BagError(f"{self.bag}: topic {topic}: {exc}") from None
 
 
@@ -218,8 +223,8 @@ def bag_groups(path) -> dict[str, dict[str, str]]:
         topics = {name: t.msgtype for name, t in reader.topics.items()}
     groups = {}
     for name in topics:
-        if name.endswith("/" + P.ENV_STEP):
-            ns = name[: -len(P.ENV_STEP)].rstrip("/") or "/"
+        if name.endswith("/" + wire.ENV_STEP):
+            ns = name[: -len(wire.ENV_STEP)].rstrip("/") or "/"
             prefix = "" if ns == "/" else ns
             groups[ns] = {t[len(prefix) + 1:]: ty for t, ty in topics.items()
                           if t.startswith(prefix + "/") and "/" not in t[len(prefix) + 1:]}
@@ -227,9 +232,9 @@ def bag_groups(path) -> dict[str, dict[str, str]]:
 
 
 def read_episodes(paths, cfg: TrainConfig, num_subgoals: int, stats: BagReadStats | None = None,
-                  logger: logging.Logger | None = None) -> Iterator[tuple[str, object, object, object]]:
-    """Replay episodes ``(group, sub Episode, meta Episode or None, EpisodeStats)`` for
-    ``cfg.algo`` from the groups of each bag in ``paths``, in recording order.
+                  logger: logging.Logger | None = None) -> Iterator[FinishedEpisode]:
+    """Replay episodes for ``cfg.algo`` from the groups of each bag in ``paths`` (``group``:
+    the group's namespace), in recording order.
 
     Raises :class:`BagError` naming the bag and the problem: not a bag, no ``env_step``
     topic, a topic ``cfg.algo`` needs missing or of the wrong type, malformed messages
@@ -239,14 +244,14 @@ def read_episodes(paths, cfg: TrainConfig, num_subgoals: int, stats: BagReadStat
     for path in map(Path, paths):
         groups = bag_groups(path)
         if not groups:
-            raise BagError(f"{path}: no {P.ENV_STEP} topic (type {P.FLOATS}): not a recording of hdrqn "
+            raise BagError(f"{path}: no {wire.ENV_STEP} topic (type {wire.FLOATS}): not a recording of hdrqn "
                            "transitions")
         finished: list = []
         handlers, assemblers = {}, []
         for ns, have in sorted(groups.items()):
-            asm = _BagAssembler(path, ns, cfg, num_subgoals, lambda *ep: finished.append(ep), logger=logger)
+            asm = _BagAssembler(path, ns, cfg, num_subgoals, finished.append, logger=logger)
             for name, (type_name, handler) in asm.inputs().items():
-                topic = P.group_topic(ns, name)
+                topic = wire.group_topic(ns, name)
                 if name not in have:
                     raise BagError(f"{path}: topic {topic} is missing; {cfg.algo} needs {sorted(asm.inputs())} "
                                    f"of each group")
@@ -270,14 +275,14 @@ def read_episodes(paths, cfg: TrainConfig, num_subgoals: int, stats: BagReadStat
 def episode_summary(path) -> dict[str, dict]:
     """Per group of a recording (from its ``env_step`` topic alone): complete episodes,
     mean return (classical reward), success rate, mean length, and episodes cut short."""
-    groups = {P.group_topic(ns, P.ENV_STEP): ns for ns, have in bag_groups(path).items()
-              if have.get(P.ENV_STEP) == P.FLOATS}
+    groups = {wire.group_topic(ns, wire.ENV_STEP): ns for ns, have in bag_groups(path).items()
+              if have.get(wire.ENV_STEP) == wire.FLOATS}
     acc = {ns: {"episodes": 0, "incomplete": 0, "returns": [], "successes": 0, "steps": 0} for ns in groups.values()}
     open_return: dict[str, float | None] = dict.fromkeys(groups.values())
     for topic, type_name, _t, cdr in read_messages(path, topics=groups):
         ns, a = groups[topic], acc[groups[topic]]
         try:
-            step = P.read_record(TYPESTORE.deserialize_cdr(cdr, type_name), P.STEP_FIELDS)
+            step = wire.read_record(TYPESTORE.deserialize_cdr(cdr, type_name), wire.STEP_FIELDS)
         except Exception as exc:  # not our layout, or garbled
             raise BagError(f"{path}: topic {topic}: {exc}") from None
         if step["t"] == 0:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -73,9 +74,18 @@ class _Open:
     option_start: int = -1  # ``place`` when the current option began
 
 
-class EpisodeRecorder:
-    """Collects :class:`StepRecord` rows per environment; :meth:`add` returns the finished
-    episodes as ``(env index, sub Episode, meta Episode or None, EpisodeStats)``."""
+class FinishedEpisode(NamedTuple):
+    """One finished episode of one environment, ready for replay and the metrics."""
+
+    group: int | str  # the environment's index in the batch (in-process), or its group's namespace (graph, bags)
+    sub: Episode  # the sub-controller's (the flat agent's) episode
+    meta: Episode | None  # the meta-controller's episode of options (None for flat agents)
+    stats: EpisodeStats
+
+
+class EpisodeBuilder:
+    """Builds replay episodes from :class:`StepRecord` rows, per environment; :meth:`add`
+    returns the episodes that finished at that step."""
 
     def __init__(self, num_envs: int, hierarchical: bool, sub_gamma: float, meta_gamma: float,
                  smdp_discount: bool = False):
@@ -85,7 +95,7 @@ class EpisodeRecorder:
         self.smdp_discount = smdp_discount
         self.open = [_Open() for _ in range(num_envs)]
 
-    def add(self, rec: StepRecord) -> list[tuple[int, Episode, Episode | None, EpisodeStats]]:
+    def add(self, rec: StepRecord) -> list[FinishedEpisode]:
         finished = []
         env = rec.env
         reward = rec.intrinsic if self.hierarchical else env.classical
@@ -123,7 +133,7 @@ class EpisodeRecorder:
                 self.open[i] = _Open()
         return finished
 
-    def _close(self, i: int, ep: _Open, rec: StepRecord):
+    def _close(self, i: int, ep: _Open, rec: StepRecord) -> FinishedEpisode:
         env = rec.env
         t = len(ep.obs)
         sub = Episode(
@@ -146,4 +156,4 @@ class EpisodeRecorder:
         stats = EpisodeStats(steps=t, classical=ep.classical, extrinsic=ep.extrinsic, intrinsic=ep.intrinsic,
                              success=bool(env.success[i]), options=len(ep.segment_starts), visits=ep.visits,
                              option_log=ep.option_log)
-        return i, sub, meta, stats
+        return FinishedEpisode(i, sub, meta, stats)

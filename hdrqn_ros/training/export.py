@@ -32,8 +32,9 @@ from torch import nn
 import hdrqn_ros
 from hdrqn_ros.agents.algorithms import ALGO_SPECS, make_network
 from hdrqn_ros.config import TrainConfig
-from hdrqn_ros.deploy.onnx_policy import (IMAGE_SIZE, POLICY_FILE, POLICY_FORMAT, POLICY_VERSION, STATE_SIZE,
+from hdrqn_ros.deploy.onnx_policy import (POLICY_FILE, POLICY_FORMAT, POLICY_VERSION, STATE_SIZE,
                                           TensorSpec, file_sha256, role_io, roles_of)
+from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint
 
@@ -168,7 +169,7 @@ def export_policy(checkpoint_path: str | Path, out_dir: str | Path, verify: bool
         "env_kwargs": cfg.env_kwargs,
         "num_actions": int(num_actions),
         "num_subgoals": int(num_subgoals),
-        "image_size": IMAGE_SIZE,
+        "image_size": OBS_SIZE,
         "state_size": STATE_SIZE,
         "meta_input": spec.meta_input,
         "meta_state": cfg.meta_state,

@@ -19,7 +19,7 @@ from hdrqn_ros.agents.algorithms import Agent
 from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from hdrqn_ros.training.episodes import EpisodeRecorder, EpisodeStats
+from hdrqn_ros.training.episodes import EpisodeBuilder, EpisodeStats, FinishedEpisode
 from hdrqn_ros.training.interrupts import stop_between_steps
 from hdrqn_ros.training.metrics import MetricsLog
 from hdrqn_ros.training.rollout import Rollout
@@ -68,7 +68,7 @@ def play(agent: Agent, cfg: TrainConfig, episodes: int, seed: int, epsilon: floa
     quota = -(-episodes // n)
     batch = make_batch(cfg.env, n, **cfg.env_kwargs)
     rollout = Rollout(batch, agent, seed=seed, meta_state=cfg.meta_state, record_subgoal_images=sink is not None)
-    recorder = EpisodeRecorder(n, agent.meta is not None, cfg.sub.gamma, cfg.meta.gamma)
+    builder = EpisodeBuilder(n, agent.meta is not None, cfg.sub.gamma, cfg.meta.gamma)
     results: dict[tuple[int, int], EpisodeStats] = {}
     played = np.zeros(n, np.int64)
     rng = np.random.default_rng(seed)
@@ -77,9 +77,10 @@ def play(agent: Agent, cfg: TrainConfig, episodes: int, seed: int, epsilon: floa
         record = rollout.step(epsilon, eps_meta, rng)
         if sink is not None:
             sink.write(record)
-        for i, _, _, stats in recorder.add(record):
+        for episode in builder.add(record):
+            i = episode.group
             if played[i] < quota:
-                results[(i, int(played[i]))] = stats
+                results[(i, int(played[i]))] = episode.stats
             played[i] += 1
     return [results[k] for k in sorted(results)]
 
@@ -187,19 +188,19 @@ class Learner:
             raise
 
     # -- replay ------------------------------------------------------------------------------
-    def store(self, items: Iterable[tuple], counted: bool = True) -> tuple[int, int]:
-        """The one way into replay: store ``(group, sub Episode, meta Episode or None,
-        EpisodeStats)`` items (the oldest are dropped beyond the replay capacity).
+    def store(self, items: Iterable[FinishedEpisode], counted: bool = True) -> tuple[int, int]:
+        """The one way into replay: store finished episodes (the oldest are dropped beyond
+        the replay capacity).
         ``counted``: they are this run's episodes (``episodes`` grows; env steps are counted
         by :meth:`add_steps` as they are played); otherwise, e.g. episodes recorded earlier,
         they only fill the replay. Returns (episodes, steps) stored."""
         episodes = steps = 0
         sub, meta = self.agent.sub.replay, self.agent.meta.replay if self.agent.meta is not None else None
-        for _, sub_ep, meta_ep, stats in items:
-            sub.add(sub_ep)
-            if meta_ep is not None:
-                meta.add(meta_ep)
-            episodes, steps = episodes + 1, steps + stats.steps
+        for episode in items:
+            sub.add(episode.sub)
+            if episode.meta is not None:
+                meta.add(episode.meta)
+            episodes, steps = episodes + 1, steps + episode.stats.steps
         if counted:
             self.episodes += episodes
         return episodes, steps

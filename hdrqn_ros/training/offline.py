@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Iterable
 
+from hdrqn_ros.training.episodes import FinishedEpisode
 from hdrqn_ros.training.learner import Learner
 
 
@@ -13,9 +14,9 @@ class OfflineTrainer(Learner):
 
     EVAL_STEP = "updates"  # evaluations' x axis: there are no new episodes
 
-    def fill(self, episodes: Iterable[tuple]) -> int:
-        """:meth:`~Learner.store` recorded ``(group, sub Episode, meta Episode or None,
-        EpisodeStats)`` items as this run's episodes and transitions; returns how many."""
+    def fill(self, episodes: Iterable[FinishedEpisode]) -> int:
+        """:meth:`~Learner.store` recorded episodes as this run's episodes and transitions
+        (their steps count as env steps); returns how many."""
         n, steps = self.store(episodes)
         self.env_steps += steps
         return n

@@ -13,7 +13,7 @@ import numpy as np
 from hdrqn_ros.agents.policy import StepRecord
 from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.envs.registration import make_batch
-from hdrqn_ros.training.episodes import EpisodeRecorder, EpisodeStats
+from hdrqn_ros.training.episodes import EpisodeBuilder, EpisodeStats
 from hdrqn_ros.training.learner import EVAL_SEED_OFFSET, Learner, play
 from hdrqn_ros.training.rollout import Rollout
 from hdrqn_ros.training.subgoals import option_table, option_table_markdown, read_options
@@ -43,7 +43,7 @@ class Trainer(Learner):
         self.sink = sink
         self.rollout = Rollout(self.batch, self.agent, seed=cfg.seed + self.episodes, meta_state=cfg.meta_state,
                                record_subgoal_images=sink is not None)
-        self.recorder = EpisodeRecorder(cfg.num_envs, self.agent.meta is not None, cfg.sub.gamma, cfg.meta.gamma,
+        self.builder = EpisodeBuilder(cfg.num_envs, self.agent.meta is not None, cfg.sub.gamma, cfg.meta.gamma,
                                         cfg.smdp_discount)
 
     # -- main loop -------------------------------------------------------------------------
@@ -65,10 +65,10 @@ class Trainer(Learner):
                     self.save()
                 raise
         self.add_steps(cfg.num_envs)
-        done = self.recorder.add(record)[: max(0, cfg.episodes - self.episodes)]  # none beyond cfg.episodes
+        done = self.builder.add(record)[: max(0, cfg.episodes - self.episodes)]  # none beyond cfg.episodes
         self.store(done)
         self.run_owed_updates()
-        return [(stats, eps_sub, eps_meta) for *_, stats in done]
+        return [(episode.stats, eps_sub, eps_meta) for episode in done]
 
     def run(self) -> dict:
         """Train until ``cfg.episodes``; returns the summary written to ``summary.json``."""

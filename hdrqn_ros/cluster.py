@@ -424,18 +424,19 @@ def _collect(ray, ref, name: str, out: Path, shared: bool, exp_name: str) -> int
 # -- the CLI's flags ---------------------------------------------------------------------------
 def add_ray_arguments(parser: argparse.ArgumentParser) -> None:
     """``--ray [ADDRESS]``, ``--cpus-per-run``, ``--gpus-per-run``, ``--shared-dir`` (``hdrqn experiment``)."""
-    g = parser.add_argument_group(
+    group = parser.add_argument_group(
         "Ray cluster", f"run the runs as Ray tasks ({INSTALL_HINT}; docs/training.md, \"Cluster\"); "
                        "--jobs is then unused: each run takes --cpus-per-run of the cluster's CPUs")
-    g.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
-                   help="on the Ray cluster at ADDRESS (HEAD:6379, started with `ray start`), or without ADDRESS "
-                        "on a local one listening on 127.0.0.1 only; write NAME before --ray (or --ray=ADDRESS)")
-    g.add_argument("--cpus-per-run", type=float, default=None, metavar="N", help="CPUs each run reserves (default 1)")
-    g.add_argument("--gpus-per-run", type=float, default=None, metavar="N",
-                   help="GPUs each run reserves (default 0); with --set device=cuda the run trains on it")
-    g.add_argument("--shared-dir", action="store_true",
-                   help="--out is on a filesystem every machine shares: runs write there directly (default: the "
-                        "driver sends each run its files and gathers the run directory back)")
+    group.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                       help="on the Ray cluster at ADDRESS (HEAD:6379, started with `ray start`), or without ADDRESS "
+                            "on a local one listening on 127.0.0.1 only; write NAME before --ray (or --ray=ADDRESS)")
+    group.add_argument("--cpus-per-run", type=float, default=None, metavar="N",
+                       help="CPUs each run reserves (default 1)")
+    group.add_argument("--gpus-per-run", type=float, default=None, metavar="N",
+                       help="GPUs each run reserves (default 0); with --set device=cuda the run trains on it")
+    group.add_argument("--shared-dir", action="store_true",
+                       help="--out is on a filesystem every machine shares: runs write there directly (default: the "
+                            "driver sends each run its files and gathers the run directory back)")
 
 
 def ray_options(args: argparse.Namespace) -> dict:

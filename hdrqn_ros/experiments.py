@@ -202,11 +202,11 @@ def run_experiment(exp: Experiment, runs: list[RunSpec], out: Path, episodes: in
     write_manifest(exp, runs, out, episodes, extra_sets)
     results: dict[str, int] = {}
     pending = []
-    for r in runs:
-        if run_done(out / r.name, episodes):
-            results[r.name] = 0
+    for run in runs:
+        if run_done(out / run.name, episodes):
+            results[run.name] = 0
         else:
-            pending.append(r)
+            pending.append(run)
     target = _target_episodes(config, episodes)
     bar = None
     if progress:
@@ -226,17 +226,17 @@ def run_experiment(exp: Experiment, runs: list[RunSpec], out: Path, episodes: in
         show()
         while pending or running:
             while pending and len(running) < jobs:
-                r = pending.pop(0)
-                run_dir = out / r.name
-                argv = r.argv(config, run_dir, episodes, extra_sets)
+                run = pending.pop(0)
+                run_dir = out / run.name
+                argv = run.argv(config, run_dir, episodes, extra_sets)
                 if (run_dir / "checkpoints" / "last.pt").exists():
                     argv.append("--resume")
                 else:
                     set_aside(run_dir)
-                with open(out / f"{r.name}.log", "ab") as log:
-                    running[r.name] = subprocess.Popen([sys.executable, "-m", "hdrqn_ros.cli", *argv],
-                                                       stdout=log, stderr=subprocess.STDOUT,
-                                                       stdin=subprocess.DEVNULL)
+                with open(out / f"{run.name}.log", "ab") as log:
+                    running[run.name] = subprocess.Popen([sys.executable, "-m", "hdrqn_ros.cli", *argv],
+                                                         stdout=log, stderr=subprocess.STDOUT,
+                                                         stdin=subprocess.DEVNULL)
             for name, p in list(running.items()):
                 if p.poll() is not None:
                     results[name] = p.returncode

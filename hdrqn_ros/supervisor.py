@@ -42,10 +42,10 @@ def _killpg(pid: int, sig: int) -> None:
 @atexit.register
 def _kill_leftovers() -> None:
     """Safety net: SIGKILL the process group of every child no stop() reaped."""
-    for p in list(_LIVE):
-        if p.poll() is None:
-            _killpg(p.pid, signal.SIGKILL)
-        _LIVE.discard(p)
+    for proc in list(_LIVE):
+        if proc.poll() is None:
+            _killpg(proc.pid, signal.SIGKILL)
+        _LIVE.discard(proc)
 
 
 @dataclass(frozen=True)
@@ -110,21 +110,21 @@ class Supervisor:
         if swap:
             signal.signal(signal.SIGINT, lambda *_: None)
         try:
-            p = subprocess.Popen(spec.argv, env={**self.env, **(spec.env or {})}, stdin=subprocess.DEVNULL, stdout=out,
-                                 stderr=subprocess.STDOUT if out else None, start_new_session=True)
+            proc = subprocess.Popen(spec.argv, env={**self.env, **(spec.env or {})}, stdin=subprocess.DEVNULL,
+                                    stdout=out, stderr=subprocess.STDOUT if out else None, start_new_session=True)
         finally:
             if swap:
                 signal.signal(signal.SIGINT, signal.SIG_IGN)
             if out is not None:
                 out.close()  # the child holds its own copy of the descriptor
-        self._procs[name] = p
+        self._procs[name] = proc
         self.returncodes[name] = None
-        _LIVE.add(p)
+        _LIVE.add(proc)
 
-    def _reap(self, name: str, p: subprocess.Popen) -> None:
-        self.returncodes[name] = p.returncode
-        _LIVE.discard(p)
-        _killpg(p.pid, signal.SIGKILL)  # stragglers the leader left in its group
+    def _reap(self, name: str, proc: subprocess.Popen) -> None:
+        self.returncodes[name] = proc.returncode
+        _LIVE.discard(proc)
+        _killpg(proc.pid, signal.SIGKILL)  # stragglers the leader left in its group
 
     def start(self) -> None:
         """Start every process (each in a new session); on failure stop those started."""
@@ -141,37 +141,37 @@ class Supervisor:
     def poll(self) -> None:
         """Reap exited children, schedule/perform respawns, note a required exit."""
         now = time.monotonic()
-        for name, p in list(self._procs.items()):
-            if p.returncode is None and p.poll() is not None:
-                self._reap(name, p)
+        for name, proc in list(self._procs.items()):
+            if proc.returncode is None and proc.poll() is not None:
+                self._reap(name, proc)
                 spec = self.specs[name]
                 if self._stopped:
                     continue
-                if spec.respawn and p.returncode != USAGE_EXIT:
+                if spec.respawn and proc.returncode != USAGE_EXIT:
                     self._respawn_at[name] = now + spec.respawn_delay_s
                 elif spec.respawn:
                     print(f"[supervisor] {name} exited with code {USAGE_EXIT} (bad parameters or input, see its "
                           f"log); not respawning it", file=sys.stderr)
                     if spec.required and self._required_exit is None:
-                        self._required_exit = (name, p.returncode)
+                        self._required_exit = (name, proc.returncode)
                 elif spec.required and self._required_exit is None:
-                    self._required_exit = (name, p.returncode)
-        for name, t in list(self._respawn_at.items()):
-            if now >= t and not self._stopped:
+                    self._required_exit = (name, proc.returncode)
+        for name, due in list(self._respawn_at.items()):
+            if now >= due and not self._stopped:
                 del self._respawn_at[name]
                 try:
                     self._spawn(name)
-                except OSError as e:  # e.g. EMFILE: retry later, never busy-loop
-                    print(f"[supervisor] respawn of {name} failed: {e}", file=sys.stderr)
+                except OSError as exc:  # e.g. EMFILE: retry later, never busy-loop
+                    print(f"[supervisor] respawn of {name} failed: {exc}", file=sys.stderr)
                     self._respawn_at[name] = now + self.specs[name].respawn_delay_s
                     continue
                 self.restarts[name] += 1
 
     def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
         """Send ``sig`` to the process group of ``name`` (fault injection)."""
-        p = self._procs[name]
-        if p.returncode is None:
-            _killpg(p.pid, sig)
+        proc = self._procs[name]
+        if proc.returncode is None:
+            _killpg(proc.pid, sig)
 
     def _alive(self) -> list[tuple[str, subprocess.Popen]]:
         return [(n, p) for n, p in self._procs.items() if p.returncode is None]
@@ -183,13 +183,13 @@ class Supervisor:
             self._respawn_at.clear()
             grace = (self.stop_timeout_s, min(1.0, self.stop_timeout_s / 2), 1.0)
             for sig, wait in zip((signal.SIGINT, signal.SIGTERM, signal.SIGKILL), grace):
-                for _, p in self._alive():
-                    _killpg(p.pid, sig)
+                for _, proc in self._alive():
+                    _killpg(proc.pid, sig)
                 deadline = time.monotonic() + wait
                 while True:
-                    for n, p in self._alive():
-                        if p.poll() is not None:
-                            self._reap(n, p)
+                    for name, proc in self._alive():
+                        if proc.poll() is not None:
+                            self._reap(name, proc)
                     if not self._alive() or time.monotonic() >= deadline:
                         break
                     time.sleep(0.02)
@@ -200,16 +200,16 @@ class Supervisor:
     def status_line(self) -> str:
         """One line: how many processes are up, restarts, anything not up, then status()."""
         up, trouble = 0, []
-        for n in self.specs:
-            p = self._procs.get(n)
-            if n in self._respawn_at:
-                trouble.append(f"{n} respawning")
-            elif p is None:
-                trouble.append(f"{n} not started")
-            elif p.returncode is None:
+        for name in self.specs:
+            proc = self._procs.get(name)
+            if name in self._respawn_at:
+                trouble.append(f"{name} respawning")
+            elif proc is None:
+                trouble.append(f"{name} not started")
+            elif proc.returncode is None:
                 up += 1
             else:
-                trouble.append(f"{n} exited rc={p.returncode}")
+                trouble.append(f"{name} exited rc={proc.returncode}")
         restarts = sum(self.restarts.values())
         line = f"[{up}/{len(self.specs)} up" + (f", {restarts} restarts" if restarts else "") + "]"
         if trouble:
@@ -217,8 +217,8 @@ class Supervisor:
         if self.status is not None:
             try:
                 line += " " + self.status()
-            except Exception as e:  # a broken status callback must not kill the graph
-                line += f" status error: {e!r}"
+            except Exception as exc:  # a broken status callback must not kill the graph
+                line += f" status error: {exc!r}"
         return line
 
     def run(self, until: Callable[[], bool] | None = None, refresh_s: float = 0.5) -> int:

@@ -139,10 +139,10 @@ class Episode:
 
     @property
     def nbytes(self) -> int:
-        n = self.frames.nbytes + self.segment_starts.nbytes
-        n += sum(a.nbytes for a in self.fields.values())
-        n += sum(a.nbytes for a in self.segment_data.values())
-        return int(n)
+        total = self.frames.nbytes + self.segment_starts.nbytes
+        total += sum(a.nbytes for a in self.fields.values())
+        total += sum(a.nbytes for a in self.segment_data.values())
+        return int(total)
 
     def _signature(self):
         def sig(a):
@@ -182,14 +182,14 @@ class SequenceBatch:
         """The window as the Double DQN target reads it: ``obs`` (the network input built
         from it, ``(B, n + 1, ...)``) and the fields ``action``, ``reward``, ``discount``,
         ``terminal`` (and ``next_invalid`` when stored) as tensors on ``device``."""
-        f = self.fields
-        invalid = f.get("next_invalid")
+        fields = self.fields
+        invalid = fields.get("next_invalid")
         return ReplaySamples(
             obs=torch.as_tensor(obs, device=device),
-            action=torch.as_tensor(f["action"], device=device).long(),
-            reward=torch.as_tensor(f["reward"], device=device).float(),
-            discount=torch.as_tensor(f["discount"], device=device).float(),
-            terminal=torch.as_tensor(f["terminal"], device=device).float(),
+            action=torch.as_tensor(fields["action"], device=device).long(),
+            reward=torch.as_tensor(fields["reward"], device=device).float(),
+            discount=torch.as_tensor(fields["discount"], device=device).float(),
+            terminal=torch.as_tensor(fields["terminal"], device=device).float(),
             mask=torch.as_tensor(self.loss_mask, device=device),
             next_invalid=None if invalid is None else torch.as_tensor(invalid, device=device).long(),
         )
@@ -339,27 +339,27 @@ class EpisodeReplay:
         ep_idx = rng.integers(len(self._episodes), size=batch_size)
         starts = np.zeros(batch_size, np.int64)
 
-        for b, e in enumerate(ep_idx):
-            ep = self._episodes[int(e)]
+        for row, episode_index in enumerate(ep_idx):
+            ep = self._episodes[int(episode_index)]
             t_total = ep.num_steps
             # The window begins at a uniformly random step of the episode (thesis 3.4) and
             # is cut at the end of that step's segment, so every step, the last one of an
             # option included, reaches the loss equally often.
-            s = int(rng.integers(t_total))
-            k = int(np.searchsorted(ep.segment_starts, s, side="right")) - 1
-            seg_end = int(ep.segment_starts[k + 1]) if k + 1 < ep.num_segments else t_total
-            w = min(n, seg_end - s)
-            from_segment_start = s == int(ep.segment_starts[k])
-            starts[b] = s
-            frames[b, : w + 1] = ep.frames[s : s + w + 1]
+            start = int(rng.integers(t_total))
+            segment = int(np.searchsorted(ep.segment_starts, start, side="right")) - 1
+            seg_end = int(ep.segment_starts[segment + 1]) if segment + 1 < ep.num_segments else t_total
+            length = min(n, seg_end - start)
+            from_segment_start = start == int(ep.segment_starts[segment])
+            starts[row] = start
+            frames[row, : length + 1] = ep.frames[start : start + length + 1]
             for name, a in ep.fields.items():
-                fields[name][b, :w] = a[s : s + w]
+                fields[name][row, :length] = a[start : start + length]
             for name, a in ep.segment_data.items():
-                seg_data[name][b] = a[k]
-            valid[b, :w] = True
+                seg_data[name][row] = a[segment]
+            valid[row, :length] = True
             # A window that begins where its segment begins starts from the true (zero) LSTM
             # state, so all its steps carry the loss; otherwise only the last loss_len do.
-            loss_mask[b, 0 if from_segment_start else max(0, w - int(loss_len)) : w] = True
+            loss_mask[row, 0 if from_segment_start else max(0, length - int(loss_len)) : length] = True
 
         return SequenceBatch(frames, fields, seg_data, valid, loss_mask, ep_idx, starts)
 

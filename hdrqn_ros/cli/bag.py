@@ -9,9 +9,9 @@ from hdrqn_ros.cli.common import UsageError
 
 
 def add_bag(sub) -> None:
-    p = sub.add_parser("bag", help="inspect and repair rosbag2 (MCAP) bags",
-                       description="rosbag2 bags with MCAP storage (what ros2 bag record -s mcap writes).")
-    bag_sub = p.add_subparsers(dest="bag_command", metavar="BAG_COMMAND", required=True)
+    parser = sub.add_parser("bag", help="inspect and repair rosbag2 (MCAP) bags",
+                            description="rosbag2 bags with MCAP storage (what ros2 bag record -s mcap writes).")
+    bag_sub = parser.add_subparsers(dest="bag_command", metavar="BAG_COMMAND", required=True)
     info = bag_sub.add_parser("info", help="topics, types, message counts, time span and files of a bag")
     info.add_argument("bag", metavar="BAG_DIR")
     info.add_argument("--json", action="store_true", help="print JSON")
@@ -114,13 +114,15 @@ def cmd_bag(args) -> int:
     if groups:
         print("episodes (complete; mean return, success rate, mean steps; incomplete):")
         width = max(len(g) for g in groups)
-        for group, e in sorted(groups.items()):
-            stats = ("-" if not e["episodes"] else
-                     f"return {e['mean_return']:7.3f}  success {e['success_rate']:.2f}  steps {e['mean_steps']:6.1f}")
-            print(f"  {group:{width}s}  {e['episodes']:6d}  {stats}  ({e['incomplete']} incomplete)")
-        n = sum(e["episodes"] for e in groups.values())
-        if len(groups) > 1 and n:
-            ret = sum(e["mean_return"] * e["episodes"] for e in groups.values() if e["episodes"]) / n
-            succ = sum(e["success_rate"] * e["episodes"] for e in groups.values() if e["episodes"]) / n
-            print(f"  {'all':{width}s}  {n:6d}  return {ret:7.3f}  success {succ:.2f}")
+        for group, group_stats in sorted(groups.items()):
+            stats = ("-" if not group_stats["episodes"] else
+                     f"return {group_stats['mean_return']:7.3f}  success {group_stats['success_rate']:.2f}  "
+                     f"steps {group_stats['mean_steps']:6.1f}")
+            print(f"  {group:{width}s}  {group_stats['episodes']:6d}  {stats}  "
+                  f"({group_stats['incomplete']} incomplete)")
+        total = sum(e["episodes"] for e in groups.values())
+        if len(groups) > 1 and total:
+            ret = sum(e["mean_return"] * e["episodes"] for e in groups.values() if e["episodes"]) / total
+            succ = sum(e["success_rate"] * e["episodes"] for e in groups.values() if e["episodes"]) / total
+            print(f"  {'all':{width}s}  {total:6d}  return {ret:7.3f}  success {succ:.2f}")
     return 0

@@ -14,37 +14,38 @@ def add_experiment(sub) -> None:
     from hdrqn_ros.config import ALGOS
     from hdrqn_ros.experiments import EXPERIMENTS
 
-    p = sub.add_parser("experiment", help="run a thesis experiment (chapter 4) over several seeds, in parallel",
-                       formatter_class=argparse.RawDescriptionHelpFormatter,
-                       description="Runs every setting of the experiment for every seed as `hdrqn train` "
-                                   "processes (JOBS at a time, or as tasks of a Ray cluster with --ray; logs in "
-                                   "OUT/RUN.log). Finished runs are skipped "
-                                   "and interrupted ones resumed, so the same command continues an experiment. "
-                                   "Then `hdrqn plot OUT` draws its figures and table.",
-                       epilog="experiments:\n" + "\n".join(f"  {e.name:24s} {e.title}" for e in EXPERIMENTS.values()))
-    p.add_argument("name", choices=list(EXPERIMENTS), metavar="NAME", help="experiment (listed below)")
-    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2], help="seeds (default 0 1 2)")
-    p.add_argument("--algos", nargs="+", choices=ALGOS, help="run only the settings of these algorithms")
-    p.add_argument("--episodes", type=int, help="episodes per run (default: the config's, i.e. the thesis's)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a config key in every run, e.g. --set device=cuda --set num_envs=32")
-    p.add_argument("--jobs", type=int, help="runs at a time (default: one per core)")
-    p.add_argument("--out", metavar="DIR", help="experiment directory (default runs/NAME)")
-    p.add_argument("--dry-run", action="store_true", help="print the runs' commands and exit")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    add_ray_arguments(p)
+    parser = sub.add_parser("experiment", help="run a thesis experiment (chapter 4) over several seeds, in parallel",
+                            formatter_class=argparse.RawDescriptionHelpFormatter,
+                            description="Runs every setting of the experiment for every seed as `hdrqn train` "
+                                        "processes (JOBS at a time, or as tasks of a Ray cluster with --ray; logs in "
+                                        "OUT/RUN.log). Finished runs are skipped "
+                                        "and interrupted ones resumed, so the same command continues an experiment. "
+                                        "Then `hdrqn plot OUT` draws its figures and table.",
+                            epilog="experiments:\n" + "\n".join(f"  {e.name:24s} {e.title}"
+                                                                 for e in EXPERIMENTS.values()))
+    parser.add_argument("name", choices=list(EXPERIMENTS), metavar="NAME", help="experiment (listed below)")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2], help="seeds (default 0 1 2)")
+    parser.add_argument("--algos", nargs="+", choices=ALGOS, help="run only the settings of these algorithms")
+    parser.add_argument("--episodes", type=int, help="episodes per run (default: the config's, i.e. the thesis's)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a config key in every run, e.g. --set device=cuda --set num_envs=32")
+    parser.add_argument("--jobs", type=int, help="runs at a time (default: one per core)")
+    parser.add_argument("--out", metavar="DIR", help="experiment directory (default runs/NAME)")
+    parser.add_argument("--dry-run", action="store_true", help="print the runs' commands and exit")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_ray_arguments(parser)
 
 
 def add_plot(sub) -> None:
-    p = sub.add_parser("plot", help="draw learning curves of runs (thesis figures 4.6-4.11) to PNG",
-                       description="Runs with the same label (default: the algorithm) are averaged: mean "
-                                   "line and min-max band over seeds. Given one `hdrqn experiment` directory, "
-                                   "draws each of its thesis figures and writes table.md (also printed).")
-    p.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run directories, or one experiment directory")
-    p.add_argument("--out", help="output PNG (default curves.png; for an experiment: the folder for its figures)")
-    p.add_argument("--window", type=int, default=200, help="moving-average window in episodes")
-    p.add_argument("--label", action="append", default=[], metavar="RUN_DIR=LABEL",
-                   help="name a run's curve (default: its algorithm)")
+    parser = sub.add_parser("plot", help="draw learning curves of runs (thesis figures 4.6-4.11) to PNG",
+                            description="Runs with the same label (default: the algorithm) are averaged: mean "
+                                        "line and min-max band over seeds. Given one `hdrqn experiment` directory, "
+                                        "draws each of its thesis figures and writes table.md (also printed).")
+    parser.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run directories, or one experiment directory")
+    parser.add_argument("--out", help="output PNG (default curves.png; for an experiment: the folder for its figures)")
+    parser.add_argument("--window", type=int, default=200, help="moving-average window in episodes")
+    parser.add_argument("--label", action="append", default=[], metavar="RUN_DIR=LABEL",
+                        help="name a run's curve (default: its algorithm)")
 
 
 def add_envs(sub) -> None:

@@ -6,14 +6,14 @@ import sys
 
 
 def add_export(sub) -> None:
-    p = sub.add_parser("export", help="write a checkpoint's controllers as ONNX models (torch-free acting)",
-                       description="Writes the meta- and sub-controller of a checkpoint as ONNX models (LSTM "
-                                   "state as explicit inputs and outputs) and policy.json into OUT; the "
-                                   "controller nodes act on it with onnxruntime and numpy only (docs/deploy.md).")
-    p.add_argument("--checkpoint", required=True, metavar="PATH", help="e.g. RUN_DIR/checkpoints/last.pt")
-    p.add_argument("--out", required=True, metavar="DIR", help="the policy directory to write")
-    p.add_argument("--no-verify", action="store_true",
-                   help="skip comparing ONNX Runtime with torch on random inputs after the export")
+    parser = sub.add_parser("export", help="write a checkpoint's controllers as ONNX models (torch-free acting)",
+                            description="Writes the meta- and sub-controller of a checkpoint as ONNX models (LSTM "
+                                        "state as explicit inputs and outputs) and policy.json into OUT; the "
+                                        "controller nodes act on it with onnxruntime and numpy only (docs/deploy.md).")
+    parser.add_argument("--checkpoint", required=True, metavar="PATH", help="e.g. RUN_DIR/checkpoints/last.pt")
+    parser.add_argument("--out", required=True, metavar="DIR", help="the policy directory to write")
+    parser.add_argument("--no-verify", action="store_true",
+                        help="skip comparing ONNX Runtime with torch on random inputs after the export")
 
 
 def cmd_export(args) -> int:

@@ -17,30 +17,35 @@ def add_up(sub) -> None:
     from hdrqn_ros.envs.registration import ENV_IDS
     from hdrqn_ros.middleware import BACKENDS
 
-    p = sub.add_parser("up", help="train over the ROS 2 node graph: each node a separate process (rclpy or Cyclone DDS)",
-                       description="Start the environment, critic, meta-controller, sub-controller and learner "
-                                   "nodes as OS processes (real rclpy nodes where rclpy is installed, else the "
-                                   "Cyclone DDS backend; no ROS install needed), show a live status line, and "
-                                   "stop them all when the learner finishes or on Ctrl-C. DDS stays on the "
-                                   "loopback interface unless --interface is given. Node logs go to RUN_DIR/logs/.")
-    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory")
-    p.add_argument("--config", action="append", default=[], metavar="FILE", help="YAML training config (repeatable)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override any config key")
-    p.add_argument("--algo", choices=ALGOS, help="algorithm (default hdrqn-v2)")
-    p.add_argument("--env", choices=ENV_IDS, metavar="ENV_ID", help="environment id")
-    p.add_argument("--episodes", type=int, help="training episodes")
-    p.add_argument("--seed", type=int, help="seed (group i's environment uses seed + 1000 i)")
-    p.add_argument("--view", help="observation window: 3, 5, 11 or full (gridworld domains)")
-    p.add_argument("--groups", type=int, default=1, help="environment/controller groups feeding the learner")
-    p.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)")
-    p.add_argument("--interface", help="network interface for DDS (default: loopback only)")
-    p.add_argument("--middleware", choices=BACKENDS, default=None,
-                   help="node backend: rclpy (real ROS 2 nodes), cyclone (Cyclone DDS with ROS 2's wire "
-                        "conventions) or auto: rclpy where it can be imported (default: $HDRQN_MIDDLEWARE or auto)")
-    p.add_argument("--no-respawn", action="store_true", help="do not restart nodes that exit unexpectedly")
-    p.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
-    p.add_argument("--record", metavar="BAG_DIR",
-                   help="the learner records every message it takes from the groups to this new bag (rosbag2 MCAP)")
+    parser = sub.add_parser("up",
+                            help="train over the ROS 2 node graph: each node a separate process (rclpy or Cyclone DDS)",
+                            description="Start the environment, critic, meta-controller, sub-controller and learner "
+                                        "nodes as OS processes (real rclpy nodes where rclpy is installed, else the "
+                                        "Cyclone DDS backend; no ROS install needed), show a live status line, and "
+                                        "stop them all when the learner finishes or on Ctrl-C. DDS stays on the "
+                                        "loopback interface unless --interface is given. "
+                                        "Node logs go to RUN_DIR/logs/.")
+    parser.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory")
+    parser.add_argument("--config", action="append", default=[], metavar="FILE",
+                        help="YAML training config (repeatable)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override any config key")
+    parser.add_argument("--algo", choices=ALGOS, help="algorithm (default hdrqn-v2)")
+    parser.add_argument("--env", choices=ENV_IDS, metavar="ENV_ID", help="environment id")
+    parser.add_argument("--episodes", type=int, help="training episodes")
+    parser.add_argument("--seed", type=int, help="seed (group i's environment uses seed + 1000 i)")
+    parser.add_argument("--view", help="observation window: 3, 5, 11 or full (gridworld domains)")
+    parser.add_argument("--groups", type=int, default=1, help="environment/controller groups feeding the learner")
+    parser.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)")
+    parser.add_argument("--interface", help="network interface for DDS (default: loopback only)")
+    parser.add_argument("--middleware", choices=BACKENDS, default=None,
+                        help="node backend: rclpy (real ROS 2 nodes), cyclone (Cyclone DDS with ROS 2's wire "
+                             "conventions) or auto: rclpy where it can be imported "
+                             "(default: $HDRQN_MIDDLEWARE or auto)")
+    parser.add_argument("--no-respawn", action="store_true", help="do not restart nodes that exit unexpectedly")
+    parser.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
+    parser.add_argument("--record", metavar="BAG_DIR",
+                        help="the learner records every message it takes from the groups to this new bag "
+                             "(rosbag2 MCAP)")
 
 
 def cmd_up(args) -> int:
@@ -97,9 +102,10 @@ def cmd_up(args) -> int:
 
 def _graph_status(run_dir: Path) -> str:
     try:
-        s = json.loads((run_dir / "status.json").read_text())
+        status = json.loads((run_dir / "status.json").read_text())
     except (OSError, ValueError):
         return "waiting for the learner"
-    succ = "-" if s.get("success_last100") is None else f"{s['success_last100']:.2f}"
-    return (f"episode {s['episodes']}/{s['target_episodes']} steps {s['env_steps']} ({s['steps_per_s']:.0f}/s) "
-            f"updates {s['updates']} success {succ} eps {s['eps_sub']:.2f}/{s['eps_meta']:.2f}")
+    succ = "-" if status.get("success_last100") is None else f"{status['success_last100']:.2f}"
+    return (f"episode {status['episodes']}/{status['target_episodes']} steps {status['env_steps']} "
+            f"({status['steps_per_s']:.0f}/s) "
+            f"updates {status['updates']} success {succ} eps {status['eps_sub']:.2f}/{status['eps_meta']:.2f}")

@@ -12,50 +12,55 @@ def add_train(sub) -> None:
     from hdrqn_ros.config import ALGOS
     from hdrqn_ros.envs.registration import ENV_IDS
 
-    p = sub.add_parser("train", help="train an agent in-process on N vectorised environments",
-                       description="Train hDRQNv1/v2 or a baseline (thesis Algorithm 1). RUN_DIR receives "
-                                   "checkpoints/, train.csv, eval.csv, tb/ (TensorBoard), curves.png and summary.json.")
-    p.add_argument("--algo", choices=ALGOS, help="algorithm (default hdrqn-v2)")
-    p.add_argument("--env", choices=ENV_IDS, metavar="ENV_ID", help=f"environment id, one of: {', '.join(ENV_IDS)}")
-    p.add_argument("--episodes", type=int, help="training episodes (default 10000)")
-    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory")
-    p.add_argument("--config", action="append", default=[], metavar="FILE",
-                   help="YAML config (repeatable; later files override earlier ones; flags override files)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override any config key, e.g. --set sub.seq_len=12 --set meta.epsilon.steps=20000")
-    p.add_argument("--seed", type=int, help="seed of environments, networks and exploration (default 0)")
-    p.add_argument("--num-envs", type=int, help="environments stepped together (default 16)")
-    p.add_argument("--view", help="observation window: 3, 5, 11 or full (gridworld domains)")
-    p.add_argument("--device", help="torch device, e.g. cpu or cuda")
-    p.add_argument("--eval-every", type=int, help="episodes between greedy evaluations (0: never)")
-    p.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    rec = p.add_argument_group("recording and offline training (rosbag2 MCAP bags)")
-    rec.add_argument("--record", metavar="BAG_DIR",
-                     help="also record every transition to this new bag (the graph's topics, one group per env)")
-    rec.add_argument("--record-split-mb", type=float, default=256.0, metavar="MB",
-                     help="start a new bag file after this many MB (default 256)")
-    rec.add_argument("--from-bag", nargs="+", metavar="BAG_DIR",
-                     help="train offline: fill the replay from these bags (ours, or ros2 bag record -s mcap of "
-                          "the graph's topics), train without an environment, then evaluate in it (5 greedy "
-                          "evaluations, none with --eval-every 0); the config defaults to the first bag's recorded one")
-    rec.add_argument("--updates", type=int, metavar="N",
-                     help="offline updates of each controller (default: 10 per update_every transitions)")
+    parser = sub.add_parser("train", help="train an agent in-process on N vectorised environments",
+                            description="Train hDRQNv1/v2 or a baseline (thesis Algorithm 1). RUN_DIR receives "
+                                        "checkpoints/, train.csv, eval.csv, tb/ (TensorBoard), curves.png and "
+                                        "summary.json.")
+    parser.add_argument("--algo", choices=ALGOS, help="algorithm (default hdrqn-v2)")
+    parser.add_argument("--env", choices=ENV_IDS, metavar="ENV_ID",
+                        help=f"environment id, one of: {', '.join(ENV_IDS)}")
+    parser.add_argument("--episodes", type=int, help="training episodes (default 10000)")
+    parser.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory")
+    parser.add_argument("--config", action="append", default=[], metavar="FILE",
+                        help="YAML config (repeatable; later files override earlier ones; flags override files)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override any config key, e.g. --set sub.seq_len=12 --set meta.epsilon.steps=20000")
+    parser.add_argument("--seed", type=int, help="seed of environments, networks and exploration (default 0)")
+    parser.add_argument("--num-envs", type=int, help="environments stepped together (default 16)")
+    parser.add_argument("--view", help="observation window: 3, 5, 11 or full (gridworld domains)")
+    parser.add_argument("--device", help="torch device, e.g. cpu or cuda")
+    parser.add_argument("--eval-every", type=int, help="episodes between greedy evaluations (0: never)")
+    parser.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    recording = parser.add_argument_group("recording and offline training (rosbag2 MCAP bags)")
+    recording.add_argument("--record", metavar="BAG_DIR",
+                           help="also record every transition to this new bag (the graph's topics, one group per env)")
+    recording.add_argument("--record-split-mb", type=float, default=256.0, metavar="MB",
+                           help="start a new bag file after this many MB (default 256)")
+    recording.add_argument("--from-bag", nargs="+", metavar="BAG_DIR",
+                           help="train offline: fill the replay from these bags (ours, or ros2 bag record -s mcap of "
+                                "the graph's topics), train without an environment, then evaluate in it (5 greedy "
+                                "evaluations, none with --eval-every 0); the config defaults to "
+                                "the first bag's recorded one")
+    recording.add_argument("--updates", type=int, metavar="N",
+                           help="offline updates of each controller (default: 10 per update_every transitions)")
 
 
 def add_eval(sub) -> None:
-    p = sub.add_parser("eval", help="run greedy evaluation episodes of a checkpoint (and record them)")
-    p.add_argument("--checkpoint", required=True, help="path to a checkpoint (RUN_DIR/checkpoints/last.pt)")
-    p.add_argument("--episodes", type=int, default=100)
-    p.add_argument("--seed", type=int, default=12345)
-    p.add_argument("--num-envs", type=int, help="environments played in parallel (default: one per episode)")
-    p.add_argument("--epsilon", type=float, default=0.0, help="exploration of both controllers (default 0: greedy)")
-    p.add_argument("--meta-epsilon", type=float, metavar="E",
-                   help="the meta-controller's exploration (default: --epsilon; 1: subgoals at random, as phase 1)")
-    p.add_argument("--subgoals", action="store_true",
-                   help="also report, per subgoal, how often the options aimed at it reached it (from its "
-                        "neighbours and from anywhere) and the steps spent at each subgoal")
-    p.add_argument("--record", metavar="BAG_DIR", help="record the episodes' transitions to this new bag")
+    parser = sub.add_parser("eval", help="run greedy evaluation episodes of a checkpoint (and record them)")
+    parser.add_argument("--checkpoint", required=True, help="path to a checkpoint (RUN_DIR/checkpoints/last.pt)")
+    parser.add_argument("--episodes", type=int, default=100)
+    parser.add_argument("--seed", type=int, default=12345)
+    parser.add_argument("--num-envs", type=int, help="environments played in parallel (default: one per episode)")
+    parser.add_argument("--epsilon", type=float, default=0.0,
+                        help="exploration of both controllers (default 0: greedy)")
+    parser.add_argument("--meta-epsilon", type=float, metavar="E",
+                        help="the meta-controller's exploration (default: --epsilon; 1: subgoals at random, "
+                             "as phase 1)")
+    parser.add_argument("--subgoals", action="store_true",
+                        help="also report, per subgoal, how often the options aimed at it reached it (from its "
+                             "neighbours and from anywhere) and the steps spent at each subgoal")
+    parser.add_argument("--record", metavar="BAG_DIR", help="record the episodes' transitions to this new bag")
 
 
 def cmd_train(args) -> int:
@@ -110,17 +115,17 @@ def _train_offline(args) -> int:
           f"{origin} -> {run_dir}", file=sys.stderr)
     trainer = OfflineTrainer(cfg, run_dir, progress=not args.no_progress)
     stats = BagReadStats()
-    n = trainer.fill(read_episodes(args.from_bag, cfg, trainer.agent.num_subgoals, stats))
+    num_episodes = trainer.fill(read_episodes(args.from_bag, cfg, trainer.agent.num_subgoals, stats))
     for bag in args.from_bag:
         key = str(Path(bag))
         print(f"  {bag}: {stats.episodes.get(key, 0)} episodes ({stats.incomplete_episodes.get(key, 0)} "
               f"incomplete ones left out)", file=sys.stderr)
-    if n == 0:
+    if num_episodes == 0:
         raise UsageError(f"no complete episode for {cfg.algo} in {', '.join(args.from_bag)}")
     updates = args.updates or max(1, 10 * trainer.env_steps // cfg.update_every)
     summary = trainer.run(updates, evaluations=0 if args.eval_every == 0 else 5)
     before, final = summary["before_eval"] or {}, summary["final_eval"] or {}
-    print(f"done: {summary['updates']} updates on {n} episodes ({summary['transitions']} transitions) in "
+    print(f"done: {summary['updates']} updates on {num_episodes} episodes ({summary['transitions']} transitions) in "
           f"{summary['wall_s']} s; greedy eval success {before.get('success', float('nan')):.2f} before -> "
           f"{final.get('success', float('nan')):.2f} after, steps {before.get('steps', float('nan')):.1f} -> "
           f"{final.get('steps', float('nan')):.1f}; run in {run_dir}")

@@ -46,8 +46,8 @@ class GridWorldEnv(gym.Env):
         self.render_mode = render_mode
         self.observation_space = gym.spaces.Box(0, 255, (OBS_SIZE, OBS_SIZE, 3), np.uint8)
         self.action_space = gym.spaces.Discrete(4)
-        c = self.batch.critic()
-        self._crit = (float(c.goal_reward), float(c.wrong_subgoal_penalty), float(c.obstacle_penalty))
+        critic = self.batch.critic()
+        self._crit = (float(critic.goal_reward), float(critic.wrong_subgoal_penalty), float(critic.obstacle_penalty))
         self._subgoal = 0
 
     @property
@@ -60,20 +60,22 @@ class GridWorldEnv(gym.Env):
         """The lowest-index goal not yet collected (``n_goals`` once all are)."""
         return int(self.batch.next_goal[0])
 
-    def set_subgoal(self, g: int) -> None:
+    def set_subgoal(self, subgoal: int) -> None:
         """Set the current subgoal (goal index in ``[0, n_goals)``)."""
-        if isinstance(g, (bool, np.bool_)) or not isinstance(g, (int, np.integer)) or not 0 <= g < self.batch.n_goals:
-            raise ValueError(f"subgoal must be an integer in [0, {self.batch.n_goals}), got {g!r}")
-        self._subgoal = int(g)
+        if (isinstance(subgoal, (bool, np.bool_)) or not isinstance(subgoal, (int, np.integer))
+                or not 0 <= subgoal < self.batch.n_goals):
+            raise ValueError(f"subgoal must be an integer in [0, {self.batch.n_goals}), got {subgoal!r}")
+        self._subgoal = int(subgoal)
 
-    def subgoal_image(self, g: int | None = None) -> np.ndarray:
-        """``(44, 44, 3) uint8``: the goal-centred image of goal ``g`` (default: the current
+    def subgoal_image(self, subgoal: int | None = None) -> np.ndarray:
+        """``(44, 44, 3) uint8``: the goal-centred image of goal ``subgoal`` (default: the current
         subgoal)."""
-        if g is None:
-            g = self._subgoal
-        elif isinstance(g, (bool, np.bool_)) or not isinstance(g, (int, np.integer)) or not 0 <= g < self.batch.n_goals:
-            raise ValueError(f"subgoal must be an integer in [0, {self.batch.n_goals}), got {g!r}")
-        return self.batch.subgoal_images(np.array([g]))[0]
+        if subgoal is None:
+            subgoal = self._subgoal
+        elif (isinstance(subgoal, (bool, np.bool_)) or not isinstance(subgoal, (int, np.integer))
+              or not 0 <= subgoal < self.batch.n_goals):
+            raise ValueError(f"subgoal must be an integer in [0, {self.batch.n_goals}), got {subgoal!r}")
+        return self.batch.subgoal_images(np.array([subgoal]))[0]
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
@@ -87,15 +89,15 @@ class GridWorldEnv(gym.Env):
         return obs, info
 
     def step(self, action):
-        b = self.batch
-        obs, classical, extrinsic, terminated, truncated, at, collected, hit, success, pos = b.step_one(action)
+        batch = self.batch
+        obs, classical, extrinsic, terminated, truncated, at, collected, hit, success, pos = batch.step_one(action)
         goal_r, wrong_r, obst_r = self._crit
         reached = at == self._subgoal
         intrinsic = goal_r if reached else (wrong_r if collected else 0.0)
         if hit:
             intrinsic += obst_r
         if reached:
-            self._subgoal = min(int(b.next_goal[0]), b.n_goals - 1)
+            self._subgoal = min(int(batch.next_goal[0]), batch.n_goals - 1)
         info = {
             "extrinsic": extrinsic, "classical": classical, "intrinsic": intrinsic, "subgoal_reached": reached,
             "at_subgoal": at, "hit_obstacle": hit, "life_lost": False,

@@ -146,16 +146,16 @@ def _load_ale():
     try:
         import ale_py
         from ale_py import ALEInterface, LoggerMode, roms
-    except ImportError as e:  # pragma: no cover - depends on the installation
+    except ImportError as exc:  # pragma: no cover - depends on the installation
         raise ImportError(
             "Montezuma's Revenge needs the Arcade Learning Environment: pip install ale-py "
             "(ale-py >= 0.9 ships the Atari ROMs)"
-        ) from e
+        ) from exc
     try:
         rom = roms.get_rom_path("montezuma_revenge")
-    except Exception as e:  # pragma: no cover
+    except Exception as exc:  # pragma: no cover
         rom = None
-        err = e
+        err = exc
     else:
         err = None
     if rom is None:  # pragma: no cover
@@ -360,14 +360,14 @@ class MontezumaEnv(gym.Env):
         self._critic = self.batch.critic()
         self.subgoal = KEY_SUBGOAL
 
-    def set_subgoal(self, g: int) -> None:
-        if not isinstance(g, (int, np.integer)) or not 0 <= g < NUM_SUBGOALS:
-            raise ValueError(f"subgoal must be an integer in [0, {NUM_SUBGOALS}), got {g!r}")
-        self.subgoal = int(g)
+    def set_subgoal(self, subgoal: int) -> None:
+        if not isinstance(subgoal, (int, np.integer)) or not 0 <= subgoal < NUM_SUBGOALS:
+            raise ValueError(f"subgoal must be an integer in [0, {NUM_SUBGOALS}), got {subgoal!r}")
+        self.subgoal = int(subgoal)
 
-    def subgoal_image(self, g: int | None = None) -> np.ndarray:
-        g = self.subgoal if g is None else g
-        return self.batch.subgoal_images(np.array([g]))[0]
+    def subgoal_image(self, subgoal: int | None = None) -> np.ndarray:
+        subgoal = self.subgoal if subgoal is None else subgoal
+        return self.batch.subgoal_images(np.array([subgoal]))[0]
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
@@ -390,20 +390,21 @@ class MontezumaEnv(gym.Env):
     def step(self, action):
         if np.ndim(action) != 0:
             raise ValueError(f"action must be a single integer in [0, {NUM_ACTIONS}), got {action!r}")
-        s = self.batch.step(np.asarray(action).reshape(1))
-        c = self._critic.evaluate(s, np.array([self.subgoal]))
+        stepped = self.batch.step(np.asarray(action).reshape(1))
+        judged = self._critic.evaluate(stepped, np.array([self.subgoal]))
         info = {
-            "extrinsic": float(s.extrinsic[0]),
-            "classical": float(s.classical[0]),
-            "intrinsic": float(c.intrinsic[0]),
-            "subgoal_reached": bool(c.reached[0]),
-            "at_subgoal": int(s.at_subgoal[0]),
-            "hit_obstacle": bool(s.hit_obstacle[0]),
-            "life_lost": bool(s.life_lost[0]),
-            "agent_pos": s.agent_pos[0].copy(),
-            "success": bool(s.success[0]),
+            "extrinsic": float(stepped.extrinsic[0]),
+            "classical": float(stepped.classical[0]),
+            "intrinsic": float(judged.intrinsic[0]),
+            "subgoal_reached": bool(judged.reached[0]),
+            "at_subgoal": int(stepped.at_subgoal[0]),
+            "hit_obstacle": bool(stepped.hit_obstacle[0]),
+            "life_lost": bool(stepped.life_lost[0]),
+            "agent_pos": stepped.agent_pos[0].copy(),
+            "success": bool(stepped.success[0]),
         }
-        return s.obs[0], float(s.classical[0]), bool(s.terminated[0]), bool(s.truncated[0]), info
+        return (stepped.obs[0], float(stepped.classical[0]), bool(stepped.terminated[0]), bool(stepped.truncated[0]),
+                info)
 
     def render(self):
         if self.render_mode == "rgb_array":

@@ -24,8 +24,8 @@ class CriticNode(StepFollower):
     def __init__(self, mw: Middleware):
         node = mw.create_node("critic")
         super().__init__(node)
-        p = node.declare_parameters(dict(ENV_DEFAULTS))
-        probe = make_batch(p["env"], 1, **env_kwargs(p["env"], p["view"]))
+        params = node.declare_parameters(dict(ENV_DEFAULTS))
+        probe = make_batch(params["env"], 1, **env_kwargs(params["env"], params["view"]))
         self.critic, self.num_subgoals = probe.critic(), probe.num_subgoals
         self.pub = node.create_publisher(wire.FLOATS, wire.CRITIC, wire.STEP_QOS)
         node.create_subscription(wire.FLOATS, wire.ENV_STEP, self.on_env_step, wire.STEP_QOS)
@@ -34,10 +34,10 @@ class CriticNode(StepFollower):
         self.choice_at = 0  # key at which we announced option_done: its subgoal is the next option's
 
     def _on_subgoal(self, msg) -> None:
-        rec = self.decode(wire.SUBGOAL, lambda: wire.read_record(msg, wire.SUBGOAL_FIELDS, np.int64))
-        if rec is not None and self.decode(wire.SUBGOAL, lambda: wire.check_index(rec["subgoal"], self.num_subgoals,
-                                                                             "subgoal")) is not None:
-            self.put(wire.SUBGOAL, rec["key"], rec["subgoal"])
+        record = self.decode(wire.SUBGOAL, lambda: wire.read_record(msg, wire.SUBGOAL_FIELDS, np.int64))
+        if record is not None and self.decode(
+                wire.SUBGOAL, lambda: wire.check_index(record["subgoal"], self.num_subgoals, "subgoal")) is not None:
+            self.put(wire.SUBGOAL, record["key"], record["subgoal"])
 
     def ready(self, step: dict) -> bool:
         prev = int(step["prev_key"])

@@ -35,19 +35,19 @@ off for all but one group: there is one sim clock)."""
 class EnvironmentNode:
     def __init__(self, mw: Middleware):
         node = self.node = mw.create_node("environment")
-        p = self.params = node.declare_parameters(PARAMETERS)
-        self.period_ns = int(round(p["step_period"] * 1e9))
-        if self.period_ns <= 0 or p["action_timeout"] <= 0:
+        params = self.params = node.declare_parameters(PARAMETERS)
+        self.period_ns = int(round(params["step_period"] * 1e9))
+        if self.period_ns <= 0 or params["action_timeout"] <= 0:
             raise NodeConfigError("step_period and action_timeout must be > 0")
-        self.batch = make_batch(p["env"], 1, **env_kwargs(p["env"], p["view"]))
+        self.batch = make_batch(params["env"], 1, **env_kwargs(params["env"], params["view"]))
         self.pub_obs = node.create_publisher(wire.IMAGE, wire.OBSERVATION, wire.STEP_QOS)
         self.pub_images = node.create_publisher(wire.IMAGE, wire.SUBGOAL_IMAGES, wire.STEP_QOS)
         self.pub_step = node.create_publisher(wire.FLOATS, wire.ENV_STEP, wire.STEP_QOS)
         self.pub_pose = node.create_publisher(wire.POSE_STAMPED, wire.POSE)
-        self.pub_clock = node.create_publisher(wire.CLOCK_TYPE, wire.CLOCK) if p["publish_clock"] else None
+        self.pub_clock = node.create_publisher(wire.CLOCK_TYPE, wire.CLOCK) if params["publish_clock"] else None
         node.create_subscription(wire.INTS, wire.ACTION, self._on_action, wire.STEP_QOS)
         node.create_subscription(wire.FLOATS, wire.CREDIT, self._on_credit, LATCHED_QOS)
-        node.create_timer(min(0.5, p["action_timeout"]), self._watchdog)
+        node.create_timer(min(0.5, params["action_timeout"]), self._watchdog)
         self.credit = 0  # the learner lets this env take steps while self.steps < credit
         self.steps = 0
         self.episode = 0
@@ -55,10 +55,10 @@ class EnvironmentNode:
         self.pending_action: int | None = None
         self.action_time = 0.0  # wall clock when pending_action arrived (step_log)
         self.finished = False
-        self.step_log = open(p["step_log"], "a", buffering=1) if p["step_log"] else None
+        self.step_log = open(params["step_log"], "a", buffering=1) if params["step_log"] else None
         self.rejected_actions = Throttle(node.logger, f"rejected a message on {self._topic(wire.ACTION)}")
         self.rejected_credit = Throttle(node.logger, f"rejected a message on {self._topic(wire.CREDIT)}")
-        self.obs = self.batch.reset(seed=p["seed"])[0]
+        self.obs = self.batch.reset(seed=params["seed"])[0]
         self._begin_episode()
 
     # -- publishing ------------------------------------------------------------------------
@@ -96,12 +96,12 @@ class EnvironmentNode:
     # -- stepping ----------------------------------------------------------------------------
     def _on_action(self, msg) -> None:
         try:
-            rec = wire.read_record(msg, wire.ACTION_FIELDS, np.int64)
-            action = wire.check_index(rec["action"], self.batch.num_actions, "action")
+            record = wire.read_record(msg, wire.ACTION_FIELDS, np.int64)
+            action = wire.check_index(record["action"], self.batch.num_actions, "action")
         except wire.ProtocolError as exc:
             self.rejected_actions.warn(exc)
             return
-        if rec["key"] != self.key or self.pending_action is not None:
+        if record["key"] != self.key or self.pending_action is not None:
             return  # a stale or repeated reply (e.g. to a re-published step)
         self.pending_action = action
         self.action_time = time.time()  # wall clock, for the step_log row

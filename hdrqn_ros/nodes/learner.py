@@ -61,44 +61,45 @@ EPISODE_QUEUE = 256
 class LearnerNode:
     def __init__(self, mw: Middleware):
         node = self.node = mw.create_node("learner")
-        p = self.params = node.declare_parameters(PARAMETERS)
-        check_algo(p["algo"])
-        overrides = parse_set([item for item in p["overrides"] if item])
-        overrides.setdefault("env_kwargs", {}).update(env_kwargs(p["env"], p["view"]))
-        cfg = build_config([p["config"]] if p["config"] else [],
-                           **{**overrides, "algo": p["algo"], "env": p["env"], "seed": p["seed"],
-                              "episodes": p["episodes"]})
-        run_dir = Path(p["run_dir"])
-        resume = p["resume"] and (run_dir / "checkpoints" / "last.pt").exists()
+        params = self.params = node.declare_parameters(PARAMETERS)
+        check_algo(params["algo"])
+        overrides = parse_set([item for item in params["overrides"] if item])
+        overrides.setdefault("env_kwargs", {}).update(env_kwargs(params["env"], params["view"]))
+        cfg = build_config([params["config"]] if params["config"] else [],
+                           **{**overrides, "algo": params["algo"], "env": params["env"], "seed": params["seed"],
+                              "episodes": params["episodes"]})
+        run_dir = Path(params["run_dir"])
+        resume = params["resume"] and (run_dir / "checkpoints" / "last.pt").exists()
         self.learner = Learner(cfg, run_dir, resume=resume, progress=False)
         if resume:
             node.logger.info("resumed from %s at episode %d", run_dir, self.learner.episodes)
         for key in ("weights_every", "credit_window", "max_owed_updates"):
-            if p[key] < 1:
-                raise NodeConfigError(f"{key} must be >= 1, got {p[key]}")
+            if params[key] < 1:
+                raise NodeConfigError(f"{key} must be >= 1, got {params[key]}")
         self.episodes: queue.Queue = queue.Queue(EPISODE_QUEUE)
-        self.transition_log = open(p["transition_log"], "a", buffering=1) if p["transition_log"] else None
-        if p["offline_updates"] < 0:
-            raise NodeConfigError(f"offline_updates must be >= 0, got {p['offline_updates']}")
-        bags, namespaces = [b for b in p["bags"] if b], [ns for ns in p["groups"] if ns]
+        self.transition_log = open(params["transition_log"], "a", buffering=1) if params["transition_log"] else None
+        if params["offline_updates"] < 0:
+            raise NodeConfigError(f"offline_updates must be >= 0, got {params['offline_updates']}")
+        bags, namespaces = [b for b in params["bags"] if b], [ns for ns in params["groups"] if ns]
         if not bags and not namespaces:
             raise NodeConfigError("nothing to learn from: give environment groups (groups) or bags (bags)")
-        if p["record"] and p["record_split_mb"] <= 0:
-            raise NodeConfigError(f"record_split_mb must be > 0, got {p['record_split_mb']}")
+        if params["record"] and params["record_split_mb"] <= 0:
+            raise NodeConfigError(f"record_split_mb must be > 0, got {params['record_split_mb']}")
         self.prefilled = self._fill(bags)
         if bags:
             node.logger.info("replay filled from %d bag(s): %d episodes, %d steps", len(bags), *self.prefilled)
             if not self.prefilled[0]:
                 raise NodeConfigError(f"no complete episode for {cfg.algo} in {bags}")
-        recorded = earlier_recordings(p["record"], node.logger) if resume and p["record"] else []
+        recorded = earlier_recordings(params["record"], node.logger) if resume and params["record"] else []
         self.recovered = self._fill(recorded)
         if recorded:
             node.logger.info("recovered %d acknowledged episodes (%d transitions) from %s", *self.recovered,
                              ", ".join(recorded))
-        self.offline_updates = p["offline_updates"]
+        self.offline_updates = params["offline_updates"]
         if not namespaces and not self.offline_updates:
             self.offline_updates = max(1, 10 * self.prefilled[1] // cfg.update_every)
-        self.recorder = GraphRecorder(node, p["record"], cfg, p["record_split_mb"]) if p["record"] else None
+        self.recorder = (GraphRecorder(node, params["record"], cfg, params["record_split_mb"])
+                         if params["record"] else None)
         self.groups = [GroupAssembler(node, ns, self.learner, self.episodes, self.transition_log, self.recorder)
                        for ns in namespaces]
         self.weight_pubs = {c.name: node.create_publisher(wire.BYTES, wire.WEIGHTS[c.name], LATCHED_QOS)
@@ -112,7 +113,7 @@ class LearnerNode:
         self._credit_lock = threading.Lock()
         self._stop = threading.Event()
         self._publish_weights()
-        node.create_timer(p["status_period"], self._status)
+        node.create_timer(params["status_period"], self._status)
         node.create_timer(1.0, lambda: self._grant_credit(force=True))  # also reaches late joiners
         self.thread = threading.Thread(target=self._train, name="learner-train", daemon=True)
         self.thread.start()

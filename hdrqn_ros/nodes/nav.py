@@ -63,11 +63,11 @@ def _entries(path, data: dict, key: str, allowed: set[str], required: set[str], 
         if missing := required - set(item):
             raise NavConfigError(f"{where}: missing key(s) {sorted(missing)}")
         entry = {}
-        for k in allowed & set(item):
-            v = item[k]
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise NavConfigError(f"{where}: {k} must be a finite number, got {v!r}")
-            entry[k] = float(v)
+        for field in allowed & set(item):
+            value = item[field]
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise NavConfigError(f"{where}: {field} must be a finite number, got {value!r}")
+            entry[field] = float(value)
         out.append(entry)
     return out
 
@@ -99,15 +99,16 @@ class SubgoalTable:
     def __len__(self) -> int:
         return len(self.poses)
 
-    def pose_msg(self, node, g, stamp_sec: int = 0, stamp_nanosec: int = 0):
-        """``geometry_msgs/PoseStamped`` of subgoal ``g`` (yaw about z -> quaternion z, w)."""
-        x, y, yaw = self.poses[_index(g, len(self), "subgoal")]
-        m = node.msg
-        return m(POSE_STAMPED)(
-            header=m("std_msgs/msg/Header")(stamp=_time(node, (stamp_sec, stamp_nanosec)), frame_id=self.frame_id),
-            pose=m("geometry_msgs/msg/Pose")(
-                position=m("geometry_msgs/msg/Point")(x=x, y=y, z=0.0),
-                orientation=m("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))))
+    def pose_msg(self, node, subgoal, stamp_sec: int = 0, stamp_nanosec: int = 0):
+        """``geometry_msgs/PoseStamped`` of subgoal ``subgoal`` (yaw about z -> quaternion z, w)."""
+        x, y, yaw = self.poses[_index(subgoal, len(self), "subgoal")]
+        msg = node.msg
+        return msg(POSE_STAMPED)(
+            header=msg("std_msgs/msg/Header")(stamp=_time(node, (stamp_sec, stamp_nanosec)), frame_id=self.frame_id),
+            pose=msg("geometry_msgs/msg/Pose")(
+                position=msg("geometry_msgs/msg/Point")(x=x, y=y, z=0.0),
+                orientation=msg("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=math.sin(yaw / 2),
+                                                                 w=math.cos(yaw / 2))))
 
 
 class ActionTable:
@@ -143,9 +144,9 @@ class ActionTable:
         header = node.msg("std_msgs/msg/Header")(stamp=_time(node, stamp), frame_id=self.frame_id)
         return node.msg(TWIST_STAMPED)(header=header, twist=twist)
 
-    def twist_msg(self, node, a, stamp=(0, 0)):
-        """Command of action ``a``; ``stamp`` (``(sec, nanosec)`` or ns) is used only when stamped."""
-        return self._msg(node, self.commands[_index(a, len(self), "action")], stamp)
+    def twist_msg(self, node, action, stamp=(0, 0)):
+        """Command of action ``action``; ``stamp`` (``(sec, nanosec)`` or ns) is used only when stamped."""
+        return self._msg(node, self.commands[_index(action, len(self), "action")], stamp)
 
     def stop_msg(self, node, stamp=(0, 0)):
         """The all-zero command (publish it on shutdown)."""
@@ -186,25 +187,25 @@ def costmap_to_observation(msg, robot_xy=None, view_cells: int = 5, size: int = 
     ox, oy = float(info.origin.position.x), float(info.origin.position.y)
     rx, ry = (ox + (w // 2 + 0.5) * res, oy + (h // 2 + 0.5) * res) if robot_xy is None else map(float, robot_xy)
     fx, fy = (0.0, 1.0) if robot_yaw is None else (math.cos(robot_yaw), math.sin(robot_yaw))  # image up
-    n = max(1, math.ceil(cell / res - 1e-6))
-    m = view_cells * n
-    off = (np.arange(m) + 0.5 - m / 2) * (cell / n)  # sample offsets, m; rows: top -> bottom = -up
+    per_cell = max(1, math.ceil(cell / res - 1e-6))
+    samples = view_cells * per_cell
+    off = (np.arange(samples) + 0.5 - samples / 2) * (cell / per_cell)  # sample offsets, m; rows: top -> bottom = -up
     up, right = -off[:, None], off[None, :]
     px, py = rx + up * fx + right * fy, ry + up * fy - right * fx  # right = heading rotated by -90 deg
     # samples on a cell border go to the upper cell (the 1e-6 absorbs rounding)
     col, row = (np.floor((p - o) / res + 1e-6).astype(np.int64) for p, o in ((px, ox), (py, oy)))
     inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
     cost = np.where(inside, data.reshape(h, w)[row.clip(0, h - 1), col.clip(0, w - 1)], -1).astype(np.int16)
-    blocked = ((cost >= lethal) | (cost < 0)).reshape(view_cells, n, view_cells, n).any(axis=(1, 3))
+    blocked = ((cost >= lethal) | (cost < 0)).reshape(view_cells, per_cell, view_cells, per_cell).any(axis=(1, 3))
     codes = np.where(blocked, WALL, FREE)
     if len(goals_xy) > len(GOAL_NAMES):
         raise ValueError(f"at most {len(GOAL_NAMES)} goals can be drawn, got {len(goals_xy)}")
-    for g, (gx, gy) in enumerate(goals_xy):  # window cell of the goal, as for the samples above
+    for goal, (gx, gy) in enumerate(goals_xy):  # window cell of the goal, as for the samples above
         dx, dy = float(gx) - rx, float(gy) - ry
-        r = math.floor(view_cells / 2 - (dx * fx + dy * fy) / cell)  # up = d . heading
-        c = math.floor(view_cells / 2 + (dx * fy - dy * fx) / cell)  # right = d . (fy, -fx)
-        if 0 <= r < view_cells and 0 <= c < view_cells:
-            codes[r, c] = GOAL0 + g
+        goal_row = math.floor(view_cells / 2 - (dx * fx + dy * fy) / cell)  # up = d . heading
+        goal_col = math.floor(view_cells / 2 + (dx * fy - dy * fx) / cell)  # right = d . (fy, -fx)
+        if 0 <= goal_row < view_cells and 0 <= goal_col < view_cells:
+            codes[goal_row, goal_col] = GOAL0 + goal
     codes[view_cells // 2, view_cells // 2] = AGENT
     counts = np.bincount((np.arange(size) * view_cells) // size, minlength=view_cells)  # as the simulator
     return np.repeat(np.repeat(PALETTE[codes], counts, axis=0), counts, axis=1)

@@ -77,19 +77,19 @@ class PlayerNode:
     def __init__(self, mw: Middleware, progress: Callable[["PlayerNode"], None] | None = None,
                  progress_period: float = 2.0, parameters: dict[str, Any] | None = None):
         node = self.node = mw.create_node("player")
-        p = self.params = node.declare_parameters(PARAMETERS, parameters)
-        self.bags = [b for b in p["bag"] if b]
+        params = self.params = node.declare_parameters(PARAMETERS, parameters)
+        self.bags = [b for b in params["bag"] if b]
         if not self.bags:
             raise NodeConfigError("no bag to play: set the parameter bag to a list of bag directories")
-        self.rate, self.loop, self.delay = p["rate"], p["loop"], p["delay"]
+        self.rate, self.loop, self.delay = params["rate"], params["loop"], params["delay"]
         if not (math.isfinite(self.rate) and self.rate > 0):
             raise NodeConfigError(f"rate must be a number > 0, got {self.rate}")
         if not (math.isfinite(self.delay) and self.delay >= 0):
             raise NodeConfigError(f"delay must be >= 0 s, got {self.delay}")
-        if p["wait_for_subscribers"] < 0:
-            raise NodeConfigError(f"wait_for_subscribers must be >= 0, got {p['wait_for_subscribers']}")
-        if p["clock"] and not (math.isfinite(p["clock_hz"]) and p["clock_hz"] > 0):
-            raise NodeConfigError(f"clock_hz must be > 0, got {p['clock_hz']}")
+        if params["wait_for_subscribers"] < 0:
+            raise NodeConfigError(f"wait_for_subscribers must be >= 0, got {params['wait_for_subscribers']}")
+        if params["clock"] and not (math.isfinite(params["clock_hz"]) and params["clock_hz"] > 0):
+            raise NodeConfigError(f"clock_hz must be > 0, got {params['clock_hz']}")
 
         infos: dict[str, TopicInfo] = {}
         first_bag: dict[str, str] = {}
@@ -108,19 +108,19 @@ class PlayerNode:
         # the bags' time span (all topics), for progress reports
         self.start_ns = min((s for s, _ in spans), default=None)
         self.end_ns = max((e for _, e in spans), default=None)
-        wanted = {t if t.startswith("/") else "/" + t for t in p["topics"] if t}
+        wanted = {t if t.startswith("/") else "/" + t for t in params["topics"] if t}
         if unknown := sorted(wanted - infos.keys()):
             raise NodeConfigError(f"topics {unknown} are not in {', '.join(self.bags)}; "
                                   f"recorded topics: {sorted(infos)}")
         bag_clock = infos.get(CLOCK_TOPIC)
         selected = {t for t in infos if not wanted or t in wanted}
-        if p["clock"] and bag_clock is not None:
+        if params["clock"] and bag_clock is not None:
             if bag_clock.type_name != CLOCK_TYPE:
                 raise BagError(f"{first_bag[CLOCK_TOPIC]}: topic {CLOCK_TOPIC} is {bag_clock.type_name}, not "
                                f"{CLOCK_TYPE}; play it with clock:=false")
             selected.add(CLOCK_TOPIC)  # the recorded clock is the clock
-        self.generate_clock = p["clock"] and bag_clock is None
-        self.clock_period = 1.0 / p["clock_hz"] if self.generate_clock else math.inf
+        self.generate_clock = params["clock"] and bag_clock is None
+        self.clock_period = 1.0 / params["clock_hz"] if self.generate_clock else math.inf
 
         self.topics = {t: infos[t] for t in sorted(selected)}
         self.publishers: dict[str, Any] = {}

@@ -79,18 +79,18 @@ class TransitionAssembler(StepFollower):
     def _ints(self, topic: str, fields, msg, n: int) -> None:
         """An ``action`` or ``subgoal`` record; its value (field ``topic``) must be in [0, n)."""
         def read() -> dict:
-            rec = wire.read_record(msg, fields, np.int64)
-            wire.check_index(rec[topic], n, topic)
-            return rec
+            record = wire.read_record(msg, fields, np.int64)
+            wire.check_index(record[topic], n, topic)
+            return record
 
-        rec = self.decode(self.topic(topic), read)
-        if rec is not None:
-            self.put(topic, rec["key"], rec)
+        record = self.decode(self.topic(topic), read)
+        if record is not None:
+            self.put(topic, record["key"], record)
 
     def _critic(self, msg) -> None:
-        rec = self.decode(self.topic(wire.CRITIC), lambda: wire.read_record(msg, wire.CRITIC_FIELDS))
-        if rec is not None:
-            self.put(wire.CRITIC, rec["key"], rec)
+        record = self.decode(self.topic(wire.CRITIC), lambda: wire.read_record(msg, wire.CRITIC_FIELDS))
+        if record is not None:
+            self.put(wire.CRITIC, record["key"], record)
 
     def _sub_state(self, msg) -> None:
         got = self.decode(self.topic(wire.SUB_STATE), lambda: wire.read_state(msg, lstm_state_size))

@@ -132,9 +132,9 @@ def read_record(msg, fields: tuple[str, ...], dtype=np.float64, extra: bool = Fa
     """The named values of a ``*MultiArray`` record; ``extra``: trailing values allowed
     (returned under ``"rest"``). Raises :class:`ProtocolError` on a malformed message."""
     data = as_array(msg.data, dtype)
-    n = len(fields)
-    if data.size < n or (data.size != n and not extra):
-        raise ProtocolError(f"expected {n} values ({','.join(fields)}), got {data.size}")
+    num_fields = len(fields)
+    if data.size < num_fields or (data.size != num_fields and not extra):
+        raise ProtocolError(f"expected {num_fields} values ({','.join(fields)}), got {data.size}")
     if dtype == np.float64 and not (np.abs(data) <= FLOAT32_MAX).all():  # rewards, states become float32
         raise ProtocolError("non-finite value (NaN or inf, or beyond the float32 range)")
     out = {f: data[i].item() for i, f in enumerate(fields)}
@@ -142,7 +142,7 @@ def read_record(msg, fields: tuple[str, ...], dtype=np.float64, extra: bool = Fa
     if key is not None and not (0 < key < MAX_KEY and float(key).is_integer()):
         raise ProtocolError(f"step key {key!r} is not a positive integer below 2^53")
     if extra:
-        out["rest"] = data[n:]
+        out["rest"] = data[num_fields:]
     return out
 
 
@@ -156,21 +156,21 @@ def read_step(msg) -> dict[str, float]:
     """An ``env_step`` record whose fields are what the protocol says: :data:`STEP_COUNTS`
     integers in [0, 2^53), :data:`STEP_FLAGS` 0 or 1, ``at_subgoal`` in [-1, 128).
     Raises :class:`ProtocolError` naming the field."""
-    rec = read_record(msg, STEP_FIELDS)
-    for f in STEP_COUNTS:
-        if not (0 <= rec[f] < MAX_KEY and float(rec[f]).is_integer()):
-            raise ProtocolError(f"env_step {f} {rec[f]!r} is not an integer in [0, 2^53)")
-    for f in STEP_FLAGS:
-        if rec[f] not in (0.0, 1.0):
-            raise ProtocolError(f"env_step {f} must be 0 or 1, got {rec[f]!r}")
-    check_index(rec["at_subgoal"], MAX_SUBGOALS, "env_step at_subgoal", allow_none=True)
-    return rec
+    record = read_record(msg, STEP_FIELDS)
+    for field in STEP_COUNTS:
+        if not (0 <= record[field] < MAX_KEY and float(record[field]).is_integer()):
+            raise ProtocolError(f"env_step {field} {record[field]!r} is not an integer in [0, 2^53)")
+    for field in STEP_FLAGS:
+        if record[field] not in (0.0, 1.0):
+            raise ProtocolError(f"env_step {field} must be 0 or 1, got {record[field]!r}")
+    check_index(record["at_subgoal"], MAX_SUBGOALS, "env_step at_subgoal", allow_none=True)
+    return record
 
 
 def make_time(node, key: int) -> object:
     """``builtin_interfaces/Time`` of a key (ns)."""
-    s = Stamp.of(key)
-    return node.msg("builtin_interfaces/msg/Time")(sec=s.sec, nanosec=s.nanosec)
+    stamp = Stamp.of(key)
+    return node.msg("builtin_interfaces/msg/Time")(sec=stamp.sec, nanosec=stamp.nanosec)
 
 
 def make_header(node, key: int, frame_id: str) -> object:
@@ -195,10 +195,10 @@ def make_state(node, key: int, state: np.ndarray) -> object:
 
 def read_state(msg, size: int) -> tuple[int, np.ndarray]:
     """(key, (size,) float32) from a ``sub_state`` message."""
-    rec = read_record(msg, ("key",), extra=True)
-    if rec["rest"].size != size:
-        raise ProtocolError(f"sub_state must hold {size} state values, got {rec['rest'].size}")
-    return int(rec["key"]), rec["rest"].astype(np.float32)
+    record = read_record(msg, ("key",), extra=True)
+    if record["rest"].size != size:
+        raise ProtocolError(f"sub_state must hold {size} state values, got {record['rest'].size}")
+    return int(record["key"]), record["rest"].astype(np.float32)
 
 
 def make_image(node, key: int, pixels: np.ndarray, frame_id: str) -> object:

@@ -135,46 +135,48 @@ class TransitionRecorder:
         self.bag.write(self.conns[i][topic], TYPESTORE.serialize_cdr(msg, GROUP_TOPICS[topic]))
 
     def _step_record(self, i: int, values: dict) -> None:
-        e = self.envs[i]
+        track = self.envs[i]
         row = {f: 0.0 for f in wire.STEP_FIELDS}
-        row.update(key=e.key, env_steps=e.env_steps, episode=e.episode, t=e.t, **values)
+        row.update(key=track.key, env_steps=track.env_steps, episode=track.episode, t=track.t, **values)
         self._put(i, wire.ENV_STEP, wire.make_record(self.m, wire.FLOATS, wire.STEP_FIELDS,
                                                      [row[f] for f in wire.STEP_FIELDS]))
 
-    def write(self, rec: StepRecord) -> None:
+    def write(self, step: StepRecord) -> None:
         """Record one step of every environment (call after each ``Rollout.step``)."""
-        m, env = self.m, rec.env
-        for i, e in enumerate(self.envs):
-            if not e.open:  # the episode's first observation: t = 0, no action yet
-                e.open, e.t = True, 0
-                e.key += STEP_PERIOD_NS
+        messages, env = self.m, step.env
+        for i, track in enumerate(self.envs):
+            if not track.open:  # the episode's first observation: t = 0, no action yet
+                track.open, track.t = True, 0
+                track.key += STEP_PERIOD_NS
                 self._step_record(i, {"prev_key": 0, "at_subgoal": NO_SUBGOAL, "decision_point": 1})
-                self._put(i, wire.OBSERVATION, wire.make_image(m, e.key, rec.obs[i], FRAME_ID))
+                self._put(i, wire.OBSERVATION, wire.make_image(messages, track.key, step.obs[i], FRAME_ID))
                 if self.spec.hierarchical:
                     self._put(i, wire.CRITIC,
-                              wire.make_record(m, wire.FLOATS, wire.CRITIC_FIELDS, [e.key, 0, 0, 1, -1]))
-            prev = e.key
-            self._put(i, wire.ACTION, wire.make_record(m, wire.INTS, wire.ACTION_FIELDS, [prev, int(rec.action[i])]))
-            if self.spec.hierarchical and rec.new_option[i]:
+                              wire.make_record(messages, wire.FLOATS, wire.CRITIC_FIELDS, [track.key, 0, 0, 1, -1]))
+            prev = track.key
+            self._put(i, wire.ACTION,
+                      wire.make_record(messages, wire.INTS, wire.ACTION_FIELDS, [prev, int(step.action[i])]))
+            if self.spec.hierarchical and step.new_option[i]:
                 self._put(i, wire.SUBGOAL,
-                          wire.make_record(m, wire.INTS, wire.SUBGOAL_FIELDS, [prev, int(rec.subgoal[i]), 1]))
-                self._put(i, wire.SUBGOAL_IMAGES, wire.make_image(m, prev, rec.all_subgoal_images[i], FRAME_ID))
-            if self.spec.meta_input == "state" and rec.option_done[i]:
-                self._put(i, wire.SUB_STATE, wire.make_state(m, prev, rec.meta_next_input[i].astype(np.float64)))
-            e.key += STEP_PERIOD_NS
-            e.t += 1
-            e.env_steps += 1
-            self._step_record(i, {"prev_key": prev, "action": int(rec.action[i]), **wire.step_outcome(env, i)})
+                          wire.make_record(messages, wire.INTS, wire.SUBGOAL_FIELDS, [prev, int(step.subgoal[i]), 1]))
+                self._put(i, wire.SUBGOAL_IMAGES, wire.make_image(messages, prev, step.all_subgoal_images[i], FRAME_ID))
+            if self.spec.meta_input == "state" and step.option_done[i]:
+                self._put(i, wire.SUB_STATE,
+                          wire.make_state(messages, prev, step.meta_next_input[i].astype(np.float64)))
+            track.key += STEP_PERIOD_NS
+            track.t += 1
+            track.env_steps += 1
+            self._step_record(i, {"prev_key": prev, "action": int(step.action[i]), **wire.step_outcome(env, i)})
             if self.spec.hierarchical:
-                reached = int(env.at_subgoal[i] == rec.subgoal[i])
-                self._put(i, wire.CRITIC, wire.make_record(m, wire.FLOATS, wire.CRITIC_FIELDS, [
-                    e.key, float(rec.intrinsic[i]), reached, int(rec.option_done[i]), int(rec.subgoal[i])]))
-            self._put(i, wire.OBSERVATION, wire.make_image(m, e.key, env.obs[i], FRAME_ID))
+                reached = int(env.at_subgoal[i] == step.subgoal[i])
+                self._put(i, wire.CRITIC, wire.make_record(messages, wire.FLOATS, wire.CRITIC_FIELDS, [
+                    track.key, float(step.intrinsic[i]), reached, int(step.option_done[i]), int(step.subgoal[i])]))
+            self._put(i, wire.OBSERVATION, wire.make_image(messages, track.key, env.obs[i], FRAME_ID))
             a, b = (float(v) for v in env.agent_pos[i])
-            self._put(i, wire.POSE, wire.make_pose(m, e.key, FRAME_ID, *((b, a) if self.grid else (a, b))))
+            self._put(i, wire.POSE, wire.make_pose(messages, track.key, FRAME_ID, *((b, a) if self.grid else (a, b))))
             if env.done[i]:
-                e.open = False
-                e.episode += 1
+                track.open = False
+                track.episode += 1
 
     def close(self) -> None:
         self.bag.close()
@@ -280,27 +282,28 @@ def episode_summary(path) -> dict[str, dict]:
     acc = {ns: {"episodes": 0, "incomplete": 0, "returns": [], "successes": 0, "steps": 0} for ns in groups.values()}
     open_return: dict[str, float | None] = dict.fromkeys(groups.values())
     for topic, type_name, _t, cdr in read_messages(path, topics=groups):
-        ns, a = groups[topic], acc[groups[topic]]
+        ns, totals = groups[topic], acc[groups[topic]]
         try:
             step = wire.read_record(TYPESTORE.deserialize_cdr(cdr, type_name), wire.STEP_FIELDS)
         except Exception as exc:  # not our layout, or garbled
             raise BagError(f"{path}: topic {topic}: {exc}") from None
         if step["t"] == 0:
             if open_return[ns] is not None:
-                a["incomplete"] += 1
+                totals["incomplete"] += 1
             open_return[ns] = 0.0
         elif open_return[ns] is not None:
             open_return[ns] += step["classical"]
             if step["terminated"] or step["truncated"]:
-                a["episodes"] += 1
-                a["returns"].append(open_return[ns])
-                a["successes"] += bool(step["success"])
-                a["steps"] += int(step["t"])
+                totals["episodes"] += 1
+                totals["returns"].append(open_return[ns])
+                totals["successes"] += bool(step["success"])
+                totals["steps"] += int(step["t"])
                 open_return[ns] = None
     out = {}
-    for ns, a in acc.items():
-        n = a["episodes"]
-        out[ns] = {"episodes": n, "incomplete": a["incomplete"] + (open_return[ns] is not None),
-                   "mean_return": float(np.mean(a["returns"])) if n else None,
-                   "success_rate": a["successes"] / n if n else None, "mean_steps": a["steps"] / n if n else None}
+    for ns, totals in acc.items():
+        episodes = totals["episodes"]
+        out[ns] = {"episodes": episodes, "incomplete": totals["incomplete"] + (open_return[ns] is not None),
+                   "mean_return": float(np.mean(totals["returns"])) if episodes else None,
+                   "success_rate": totals["successes"] / episodes if episodes else None,
+                   "mean_steps": totals["steps"] / episodes if episodes else None}
     return out

@@ -95,46 +95,46 @@ class EpisodeBuilder:
         self.smdp_discount = smdp_discount
         self.open = [_Open() for _ in range(num_envs)]
 
-    def add(self, rec: StepRecord) -> list[FinishedEpisode]:
+    def add(self, step: StepRecord) -> list[FinishedEpisode]:
         finished = []
-        env = rec.env
-        reward = rec.intrinsic if self.hierarchical else env.classical
+        env = step.env
+        reward = step.intrinsic if self.hierarchical else env.classical
         for i, ep in enumerate(self.open):
-            if rec.new_option[i] or not ep.obs:
+            if step.new_option[i] or not ep.obs:
                 ep.segment_starts.append(len(ep.obs))
                 if self.hierarchical:
-                    ep.segment_images.append(rec.subgoal_image[i].copy())
-                    ep.meta_frames.append(rec.meta_input[i].copy())
+                    ep.segment_images.append(step.subgoal_image[i].copy())
+                    ep.meta_frames.append(step.meta_input[i].copy())
                     ep.option_start = ep.place
-            ep.obs.append(rec.obs[i].copy())
-            ep.action.append(rec.action[i])
+            ep.obs.append(step.obs[i].copy())
+            ep.action.append(step.action[i])
             ep.reward.append(reward[i])
-            ep.terminal.append(rec.sub_terminal[i])
+            ep.terminal.append(step.sub_terminal[i])
             ep.classical += float(env.classical[i])
             ep.extrinsic += float(env.extrinsic[i])
-            ep.intrinsic += float(rec.intrinsic[i])
+            ep.intrinsic += float(step.intrinsic[i])
             ep.place = int(env.at_subgoal[i])
             if ep.place >= 0:
                 ep.visits[ep.place] += 1
-            if self.hierarchical and rec.option_done[i]:
-                k = int(rec.option_steps[i])
-                ep.option_log.append(OptionOutcome(ep.option_start, int(rec.subgoal[i]), k,
-                                                   ep.place == int(rec.subgoal[i])))
+            if self.hierarchical and step.option_done[i]:
+                option_steps = int(step.option_steps[i])
+                ep.option_log.append(OptionOutcome(ep.option_start, int(step.subgoal[i]), option_steps,
+                                                   ep.place == int(step.subgoal[i])))
                 meta_r, discount, terminal, next_invalid = meta_transition(
-                    rec.option_extrinsic[i], env.terminated[i], k, env.at_subgoal[i], self.meta_gamma,
+                    step.option_extrinsic[i], env.terminated[i], option_steps, env.at_subgoal[i], self.meta_gamma,
                     self.smdp_discount)
-                ep.meta_action.append(rec.subgoal[i])
+                ep.meta_action.append(step.subgoal[i])
                 ep.meta_reward.append(meta_r)
                 ep.meta_terminal.append(terminal)
                 ep.meta_discount.append(discount)
                 ep.meta_next_invalid.append(next_invalid)
             if env.done[i]:
-                finished.append(self._close(i, ep, rec))
+                finished.append(self._close(i, ep, step))
                 self.open[i] = _Open()
         return finished
 
-    def _close(self, i: int, ep: _Open, rec: StepRecord) -> FinishedEpisode:
-        env = rec.env
+    def _close(self, i: int, ep: _Open, step: StepRecord) -> FinishedEpisode:
+        env = step.env
         t = len(ep.obs)
         sub = Episode(
             frames=np.stack(ep.obs + [env.obs[i].copy()]),
@@ -146,7 +146,7 @@ class EpisodeBuilder:
         meta = None
         if self.hierarchical:
             meta = Episode(
-                frames=np.stack(ep.meta_frames + [rec.meta_next_input[i].copy()]),
+                frames=np.stack(ep.meta_frames + [step.meta_next_input[i].copy()]),
                 fields={"action": np.asarray(ep.meta_action, np.uint8),
                         "reward": np.asarray(ep.meta_reward, np.float32),
                         "terminal": np.asarray(ep.meta_terminal, bool),

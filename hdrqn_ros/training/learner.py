@@ -228,11 +228,11 @@ class Learner:
 
     def run_owed_updates(self, limit: int | None = None) -> int:
         """Run the updates owed (at most ``limit``) with :meth:`update_once`; returns how many ran."""
-        n = self.owed_updates if limit is None else min(limit, self.owed_updates)
-        for _ in range(n):
+        count = self.owed_updates if limit is None else min(limit, self.owed_updates)
+        for _ in range(count):
             self._pending_updates -= self.cfg.update_every
             self.update_once()
-        return n
+        return count
 
     def update_once(self, offline: bool = False) -> None:
         """One update (:meth:`~hdrqn_ros.agents.controller.Controller.update`) of each

@@ -35,11 +35,11 @@ class MetricsLog:
         for name, cols in tables:
             path = self.run_dir / f"{name}.csv"
             new = not path.exists() or path.stat().st_size == 0
-            f = open(path, "a", newline="", encoding="utf-8")
-            w = csv.DictWriter(f, fieldnames=cols)
+            file = open(path, "a", newline="", encoding="utf-8")
+            writer = csv.DictWriter(file, fieldnames=cols)
             if new:
-                w.writeheader()
-            self._files[name], self._writers[name] = f, w
+                writer.writeheader()
+            self._files[name], self._writers[name] = file, writer
         self.tb = None
         if tensorboard:
             try:

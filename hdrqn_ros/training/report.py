@@ -119,12 +119,13 @@ def phase1_sections(exp_dir: Path, runs: list[dict]) -> str:
         path = Path(exp_dir) / run["dir"] / "phase1.json"
         if not path.exists():
             continue
-        p = json.loads(path.read_text())
-        first, last = p["training_episodes"]
-        parts.append(f"## Phase 1 of {run['dir']}: the sub-controller after {p['phase1_episodes']} episodes "
-                     f"({p['env_steps']} env steps)\n\nGreedy sub-controller, subgoals at random, "
-                     f"{p['greedy_episodes']} held-out episodes:\n\n{option_table_markdown(p['greedy'])}\n\n"
-                     f"Training (epsilon-greedy), episodes {first}-{last}:\n\n{option_table_markdown(p['training'])}")
+        phase1 = json.loads(path.read_text())
+        first, last = phase1["training_episodes"]
+        parts.append(f"## Phase 1 of {run['dir']}: the sub-controller after {phase1['phase1_episodes']} episodes "
+                     f"({phase1['env_steps']} env steps)\n\nGreedy sub-controller, subgoals at random, "
+                     f"{phase1['greedy_episodes']} held-out episodes:\n\n{option_table_markdown(phase1['greedy'])}\n\n"
+                     f"Training (epsilon-greedy), episodes {first}-{last}:\n\n"
+                     f"{option_table_markdown(phase1['training'])}")
     return "\n\n".join(parts)
 
 

@@ -68,9 +68,9 @@ class Rollout:
         action = self.policy.act(self.agent.sub_input(obs, self.subgoal_image), eps_sub, rng)
         env = self.batch.step(action)
         if self.agent.meta is not None:
-            crit = self.critic.evaluate(env, self.subgoal)
-            intrinsic, option_done = crit.intrinsic, crit.option_done
-            sub_terminal = sub_controller_terminal(crit.reached, env.terminated, env.life_lost, option_done)
+            judged = self.critic.evaluate(env, self.subgoal)
+            intrinsic, option_done = judged.intrinsic, judged.option_done
+            sub_terminal = sub_controller_terminal(judged.reached, env.terminated, env.life_lost, option_done)
         else:
             intrinsic = np.zeros(self.n, np.float32)
             option_done = env.done.copy()

@@ -48,9 +48,9 @@ def _rate(prefix: str, options: list[OptionOutcome]) -> dict:
 def option_table_markdown(rows: list[dict]) -> str:
     """The option table as Markdown (rates with their counts)."""
 
-    def cell(r: dict, prefix: str) -> str:
-        n = r[f"{prefix}_attempts"]
-        return f"{r[f'{prefix}_rate']:.2f} ({r[f'{prefix}_reached']}/{n})" if n else "- (0)"
+    def cell(row: dict, prefix: str) -> str:
+        attempts = row[f"{prefix}_attempts"]
+        return f"{row[f'{prefix}_rate']:.2f} ({row[f'{prefix}_reached']}/{attempts})" if attempts else "- (0)"
 
     lines = ["| subgoal | from its neighbours | reached from neighbours | reached from anywhere | "
              "median steps when reached |", "|---|---|---|---|---|"]

@@ -374,7 +374,7 @@ def check_episode(sub, meta) -> None:
 def assemble(episodes) -> tuple[TransitionAssembler, list]:
     """Feed ``group_stream(episodes)`` to a learner-side assembler; returns it and the finished episodes."""
     finished = []
-    asm = TransitionAssembler("/", CFG, NUM_SUBGOALS, lambda *ep: finished.append(ep), logger=LOG)
+    asm = TransitionAssembler("/", CFG, NUM_SUBGOALS, finished.append, logger=LOG)
     handlers = asm.inputs()
     for topic, msg in group_stream(episodes):
         if topic in handlers:

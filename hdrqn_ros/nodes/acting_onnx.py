@@ -39,8 +39,9 @@ class OnnxActingNetwork(ActingNetwork):
             raise NodeConfigError(f"policy {directory} does not fit this node: {'; '.join(mismatches)}")
         if role not in policy.roles:
             raise NodeConfigError(f"policy {directory} has no {role} controller (roles: {list(policy.roles)})")
-        trained_on = policy.env, policy.env_kwargs
-        if policy.env and trained_on != (params["env"], env_kwargs(params["env"], params["view"])):
+        trained_view = policy.env_kwargs.get("view")  # absent: the env's default
+        if (policy.env and policy.env != params["env"]) or \
+                (trained_view is not None and env_kwargs(params["env"], params["view"]).get("view") != trained_view):
             node.logger.warning("policy %s was exported from a run on %s %s; this node acts on %s view %s",
                                 directory, policy.env, policy.env_kwargs, params["env"], params["view"])
         node.logger.info("acting with the exported %s policy %s (%s, onnxruntime; torch imported: %s)",

@@ -1,24 +1,30 @@
-"""Run trained controllers without a learner: ``ros2 launch hdrqn_ros run_policy.launch.py checkpoint:=...``.
+"""Run trained controllers without a learner: ``ros2 launch hdrqn_ros run_policy.launch.py checkpoint:=...``
+(torch) or ``policy:=...`` (an exported ONNX policy: the controllers never import torch).
 
 Starts, in ``namespace`` (default ``/``), a ``sub_controller`` and, for hierarchical
-agents (hdrqn-v2, hdrqn-v1, hdqn), a ``critic`` and a ``meta_controller``, all with the
-weights of ``checkpoint`` (``RUN_DIR/checkpoints/last.pt``) and a fixed ``epsilon``
-(default 0.0: greedy). With ``with_environment:=true`` (default) the simulator runs too,
+agents (hdrqn-v2, hdrqn-v1, hdqn), a ``critic`` and a ``meta_controller``, both
+controllers acting with exactly one of: the weights of ``checkpoint``
+(``RUN_DIR/checkpoints/last.pt``), or the exported policy directory ``policy``
+(``hdrqn export --checkpoint ... --out DIR``; numpy and onnxruntime only, see
+``docs/deploy.md``); and a fixed ``epsilon`` (default 0.0: greedy). With ``with_environment:=true`` (default) the simulator runs too,
 with ``wait_for_learner: false``; when it exits (``max_episodes`` reached) the launch
 shuts down. With ``with_environment:=false`` something else must publish the
 environment's topics (``env_step``, ``observation``, ``subgoal_images``), and the Nav2
 adapter parameters connect the controllers to a robot (``docs/nav2.md``)::
 
     ros2 launch hdrqn_ros run_policy.launch.py checkpoint:=runs/x/checkpoints/last.pt
+    ros2 launch hdrqn_ros run_policy.launch.py policy:=runs/x/policy
     ros2 launch hdrqn_ros run_policy.launch.py checkpoint:=runs/x/checkpoints/last.pt algo:=hdrqn-v1 \\
         env:=hdrqn/FourRooms-2Goals-v0 epsilon:=0.05
     ros2 launch hdrqn_ros run_policy.launch.py checkpoint:=runs/x/checkpoints/last.pt with_environment:=false \\
         subgoal_table:=/path/subgoals.yaml action_table:=/path/actions.yaml observation_source:=costmap
 
-The ``algo``, ``env`` and ``view`` must be those the checkpoint was trained with.
-Parameters: the params file (default: this package's ``config/ros/run_policy.yaml``)
-first, then the launch arguments, which win; an empty argument keeps the file's value.
-``checkpoint``, ``epsilon`` and ``observation_source`` are always passed.
+The ``algo``, ``env`` and ``view`` must be those the checkpoint was trained with (a
+policy's algo, sizes and hDRQNv2 ``meta_state`` are checked by the nodes: exit 2 naming
+the mismatch). Parameters: the params file (default: this package's
+``config/ros/run_policy.yaml``) first, then the launch arguments, which win; an empty
+argument keeps the file's value. ``checkpoint`` and ``policy`` (the one not given as
+``""``), ``epsilon`` and ``observation_source`` are always passed.
 """
 from __future__ import annotations
 
@@ -46,9 +52,11 @@ def _nodes(context):
     algo = shared.get("algo") or str(file_shared.get("algo", DEFAULT_ALGO))
     if algo not in ALGOS:
         raise RuntimeError(f"unknown algo {algo!r}; choose one of {', '.join(ALGOS)}")
-    checkpoint = arg(context, "checkpoint")
-    if not checkpoint:
-        raise RuntimeError("launch argument checkpoint is required (e.g. checkpoint:=runs/x/checkpoints/last.pt)")
+    checkpoint, policy = arg(context, "checkpoint"), arg(context, "policy")
+    if bool(checkpoint) == bool(policy):
+        raise RuntimeError("give exactly one of the launch arguments checkpoint (e.g. "
+                           "checkpoint:=runs/x/checkpoints/last.pt) and policy (an exported policy directory, e.g. "
+                           f"policy:=runs/x/policy); got {'both' if checkpoint else 'neither'}")
     epsilon = float_arg(context, "epsilon")
     if not 0.0 <= epsilon <= 1.0:
         raise RuntimeError(f"launch argument epsilon must be in [0, 1], got {epsilon}")
@@ -60,12 +68,13 @@ def _nodes(context):
     ns = arg(context, "namespace") or "/"
     hierarchical = algo in HIERARCHICAL_ALGOS
 
-    acting = {**shared, "checkpoint": checkpoint, "epsilon": epsilon}
+    acting = {**shared, "checkpoint": checkpoint, "policy": policy, "epsilon": epsilon}
     meta_params = {**acting, **{name: arg(context, name) for name in META_NAV_ARGS if arg(context, name)}}
     sub_params = {**acting, "observation_source": observation_source,
                   **{name: arg(context, name) for name in SUB_NAV_ARGS if arg(context, name)}}
 
-    actions = [LogInfo(msg=f"hdrqn_ros policy: {algo} from {checkpoint} in {ns}, epsilon {epsilon}, "
+    source = f"checkpoint {checkpoint}" if checkpoint else f"exported policy {policy} (onnxruntime)"
+    actions = [LogInfo(msg=f"hdrqn_ros policy: {algo} from {source} in {ns}, epsilon {epsilon}, "
                            f"environment {'on' if with_environment else 'off'}, params {params_file}")]
     if with_environment:
         environment = Node(package=PACKAGE, executable="environment", name="environment", namespace=ns,
@@ -88,8 +97,11 @@ def _nodes(context):
 def generate_launch_description() -> LaunchDescription:
     default_params = str(share_dir() / "config" / "ros" / "run_policy.yaml")
     return LaunchDescription([
-        DeclareLaunchArgument("checkpoint",
-                              description="trained weights: RUN_DIR/checkpoints/last.pt (required)"),
+        DeclareLaunchArgument("checkpoint", default_value="",
+                              description="trained weights: RUN_DIR/checkpoints/last.pt (this or policy)"),
+        DeclareLaunchArgument("policy", default_value="",
+                              description="exported policy directory (hdrqn export; the controllers act with "
+                                          "onnxruntime, no torch; this or checkpoint)"),
         DeclareLaunchArgument("params_file", default_value=default_params,
                               description="ROS 2 parameters file for all nodes (/** shared, then per node)"),
         DeclareLaunchArgument("algo", default_value="",

@@ -193,3 +193,23 @@ def test_train_launch_with_ros_two_flat_groups():
 def test_run_policy_launch_with_ros():
     nodes = _real_nodes(RUN_POLICY, checkpoint="c.pt")
     assert sorted(n.node_executable for n in nodes) == sorted(HIERARCHICAL_NODES)
+    nodes = _real_nodes(RUN_POLICY, policy="policy_dir", algo="dqn")
+    assert sorted(n.node_executable for n in nodes) == sorted(FLAT_NODES)
+    for both_or_neither in ({"checkpoint": "c.pt", "policy": "policy_dir"}, {}):
+        with pytest.raises(RuntimeError, match="exactly one of the launch arguments checkpoint"):
+            _real_nodes(RUN_POLICY, **both_or_neither)
+
+
+def test_run_policy_launch_takes_checkpoint_or_policy():
+    """Both optional launch arguments (exactly one is required, checked when expanded), both
+    passed to the two controllers."""
+    tree = ast.parse(RUN_POLICY.read_text(encoding="utf-8"))
+    declared = {}
+    for call in ast.walk(tree):
+        if isinstance(call, ast.Call) and getattr(call.func, "id", None) == "DeclareLaunchArgument":
+            kwargs = {k.arg: k.value for k in call.keywords}
+            declared[ast.literal_eval(call.args[0])] = kwargs.get("default_value")
+    for name in ("checkpoint", "policy"):
+        assert name in declared and isinstance(declared[name], ast.Constant) and declared[name].value == "", name
+    source = RUN_POLICY.read_text(encoding="utf-8")
+    assert '"checkpoint": checkpoint, "policy": policy' in source

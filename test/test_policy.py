@@ -3,6 +3,9 @@ count their steps (h += 1, c += 2 per act), so every zeroing and every read is v
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -134,9 +137,80 @@ def test_one_environment_on_inference_tensors_like_the_nodes():
 
 
 def test_policy_imports_stay_in_the_agents_layer():
-    allowed = ("numpy", "torch", "hdrqn_ros.envs", "hdrqn_ros.critic", "hdrqn_ros.agents.networks",
+    allowed = ("numpy", "torch", "hdrqn_ros.envs", "hdrqn_ros.critic", "hdrqn_ros.deploy.specs",
                "hdrqn_ros.agents.policy", "__future__", "dataclasses", "typing")
     tree = ast.parse(Path(policy_module.__file__).read_text())
     imported = [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
     imported += [n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
     assert imported and all(any(m == a or m.startswith(a + ".") for a in allowed) for m in imported), imported
+
+
+class CountingNumpy(Counting):
+    """The same controller with numpy LSTM states, as an exported ONNX policy acts."""
+
+    def initial_state(self, batch_size):
+        return np.zeros((batch_size, 256), np.float32), np.zeros((batch_size, 256), np.float32)
+
+    def act(self, x, state):
+        self.inputs.append(np.array(x, copy=True))
+        h, c = state
+        return np.tile(self.q, (len(x), 1)), (h + 1, c + 2)
+
+
+def _run_rules(controller_type) -> list:
+    """One sequence of every rule on N environments (partial rows throughout); what it saw."""
+    sub, meta = controller_type([0.0, 1.0]), controller_type([0.2, 0.5, 1.0])
+    pol = HierarchicalPolicy(N, sub, meta, "state")
+    rng = np.random.default_rng(4)
+    seen = []
+    for step in range(12):
+        rows = np.arange(N) % 3 == step % 3
+        if rows.any():
+            pol.end_options(rows, np.where(rows, step % S, NO_SUBGOAL))
+            seen.append(pol.choose_subgoals(rows, None, 0.3, rng))
+        seen.append(pol.act(_obs(), 0.3, rng))
+        pol.start_episodes(np.arange(N) == step % 5)
+        seen += [np.asarray(part).copy() for part in (*pol.sub_state, *pol.meta_state)]
+        seen += [pol.sub_end_state(), pol.sub_end_state(_rows(True, False, True, False)), pol.last_sub_state.copy()]
+    return seen
+
+
+def test_numpy_states_follow_the_same_rules_as_torch_states():
+    """ONNX controllers carry numpy (h, c): every zeroing and read is the torch path's."""
+    torch_seen, numpy_seen = _run_rules(Counting), _run_rules(CountingNumpy)
+    assert len(torch_seen) == len(numpy_seen)
+    for a, b in zip(torch_seen, numpy_seen):
+        if isinstance(a, tuple):
+            for x, y in zip(a, b):
+                np.testing.assert_array_equal(x, y)
+        else:
+            assert isinstance(b, np.ndarray)
+            np.testing.assert_array_equal(a, b)
+
+
+def test_the_policy_module_acts_on_numpy_states_without_importing_torch():
+    code = textwrap.dedent("""
+        import sys
+        import numpy as np
+        from hdrqn_ros.agents.policy import HierarchicalPolicy
+
+        class Stub:
+            def initial_state(self, n):
+                return np.zeros((n, 256), np.float32), np.zeros((n, 256), np.float32)
+
+            def act(self, x, state):
+                return np.ones((len(x), 3), np.float32), (state[0] + 1, state[1] + 2)
+
+        pol = HierarchicalPolicy(2, Stub(), Stub(), "state")
+        rng = np.random.default_rng(0)
+        pol.choose_subgoals(np.array([True, False]), None, 0.5, rng)
+        pol.act(np.zeros((2, 44, 44, 6), np.uint8), 0.5, rng)
+        pol.end_options(np.array([False, True]), np.array([0, 1]))
+        pol.start_episodes(np.array([True, False]))
+        assert pol.last_sub_state[1, 0] == 2.0 and pol.sub_state[0][:, 0].tolist() == [0.0, 1.0]
+        print("torch" in sys.modules)
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["False"]

@@ -1,8 +1,18 @@
-"""Agents: Q-networks (torch) and episodic replay (numpy).
+"""Agents: Q-networks, updates and episodic replay (torch), and the acting policy.
 
-``replay`` does not import torch; import ``hdrqn_ros.agents.networks`` explicitly for the
-networks so that numpy-only users (e.g. recorder nodes) do not pay for importing torch.
+Importing this package imports nothing: :mod:`hdrqn_ros.agents.policy` (the acting rules)
+imports no torch, so a controller node acting from an exported ONNX policy never loads
+it. ``Episode``, ``EpisodeReplay`` and ``SequenceBatch`` are taken from
+:mod:`hdrqn_ros.agents.replay` (which imports torch) when first used.
 """
-from hdrqn_ros.agents.replay import Episode, EpisodeReplay, SequenceBatch
+from __future__ import annotations
 
 __all__ = ["Episode", "EpisodeReplay", "SequenceBatch"]
+
+
+def __getattr__(name: str):
+    if name in __all__:
+        from hdrqn_ros.agents import replay
+
+        return getattr(replay, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

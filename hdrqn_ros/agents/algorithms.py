@@ -10,12 +10,10 @@
 
 The sub-controller of a hierarchical agent sees the observation and the subgoal image
 stacked to 6 channels; a flat agent's controller sees the observation (3 channels) and
-learns from the classical reward.
+learns from the classical reward. The table itself (:data:`ALGO_SPECS`) and
+:func:`stack_subgoal` live in the torch-free :mod:`hdrqn_ros.deploy.specs`.
 """
 from __future__ import annotations
-
-from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 
@@ -23,22 +21,7 @@ from hdrqn_ros.agents.controller import Controller
 from hdrqn_ros.agents.networks import lstm_state_size, make_image_qnet, make_state_qnet
 from hdrqn_ros.agents.replay import SequenceBatch
 from hdrqn_ros.config import TrainConfig
-
-
-@dataclass(frozen=True)
-class AlgoSpec:
-    hierarchical: bool
-    recurrent: bool
-    meta_input: Literal["image", "state", None]
-
-
-ALGO_SPECS: dict[str, AlgoSpec] = {
-    "hdrqn-v2": AlgoSpec(hierarchical=True, recurrent=True, meta_input="state"),
-    "hdrqn-v1": AlgoSpec(hierarchical=True, recurrent=True, meta_input="image"),
-    "hdqn": AlgoSpec(hierarchical=True, recurrent=False, meta_input="image"),
-    "drqn": AlgoSpec(hierarchical=False, recurrent=True, meta_input=None),
-    "dqn": AlgoSpec(hierarchical=False, recurrent=False, meta_input=None),
-}
+from hdrqn_ros.deploy.specs import ALGO_SPECS, AlgoSpec, stack_subgoal  # noqa: F401 (torch-free; re-exported)
 
 
 def make_network(algo: str, role: str, num_actions: int, num_subgoals: int):
@@ -51,12 +34,6 @@ def make_network(algo: str, role: str, num_actions: int, num_subgoals: int):
     if spec.meta_input == "state":
         return make_state_qnet(lstm_state_size, num_subgoals, recurrent=True)
     return make_image_qnet(3, num_subgoals, recurrent=spec.recurrent)
-
-
-def stack_subgoal(obs: np.ndarray, subgoal_image: np.ndarray) -> np.ndarray:
-    """Sub-controller input: ``obs`` (..., 44, 44, 3) and the subgoal image broadcast to
-    it, stacked to (..., 44, 44, 6) uint8."""
-    return np.concatenate([obs, np.broadcast_to(subgoal_image, obs.shape)], axis=-1)
 
 
 def _sub_window_input(batch: SequenceBatch) -> np.ndarray:

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from hdrqn_ros.deploy.specs import STATE_SIZE
 from hdrqn_ros.envs.domain import OBS_SIZE
 
 __all__ = [
@@ -45,7 +46,7 @@ __all__ = [
 ]
 
 FEATURES = 256
-lstm_state_size = 256
+lstm_state_size = STATE_SIZE
 
 LSTMState = tuple[Tensor, Tensor]
 

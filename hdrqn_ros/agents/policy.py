@@ -16,8 +16,11 @@ Per step the caller runs ``choose_subgoals`` (rows that need an option), ``act``
 environments, ``end_options`` (rows whose option ended) and ``start_episodes`` (rows that
 were reset). ``rows`` arguments are ``(N,)`` bool masks. A controller is anything with
 ``act(x (B, ...), state) -> (Q-values (B, n) numpy, new state)`` and ``initial_state(B)``
-(:class:`~hdrqn_ros.agents.controller.Controller`, the nodes' acting network); LSTM
-states are ``(h, c)`` tensors of ``(N, 256)``, ``None`` for feed-forward networks.
+(:class:`~hdrqn_ros.agents.controller.Controller`, the nodes' acting networks); LSTM
+states are ``(h, c)`` pairs of ``(N, 256)`` torch tensors (torch networks) or float32
+numpy arrays (an exported ONNX policy, :mod:`hdrqn_ros.deploy`), ``None`` for
+feed-forward networks. This module imports no torch: given numpy states it runs without
+it (torch is imported only to index a torch state, which means torch is loaded anyway).
 
 :class:`StepRecord` is what one step of N environments produced, for replay and recording.
 """
@@ -27,9 +30,8 @@ from dataclasses import dataclass
 from typing import Literal, Protocol
 
 import numpy as np
-import torch
 
-from hdrqn_ros.agents.networks import lstm_state_size
+from hdrqn_ros.deploy.specs import STATE_SIZE
 from hdrqn_ros.envs.domain import NO_SUBGOAL, StepBatch
 
 
@@ -45,9 +47,9 @@ def epsilon_greedy(q: np.ndarray, eps: float, rng: np.random.Generator,
         return np.where(explore, rng.integers(0, n, size=b), q.argmax(axis=1))
     masked = np.where(np.arange(n) == invalid[:, None], -np.inf, q)
     has = invalid >= 0
-    r = rng.integers(0, n - has.astype(np.int64), size=b)  # uniform over the valid choices
-    r += has & (r >= invalid)
-    return np.where(explore, r, masked.argmax(axis=1))
+    random_choice = rng.integers(0, n - has.astype(np.int64), size=b)  # uniform over the valid choices
+    random_choice += has & (random_choice >= invalid)
+    return np.where(explore, random_choice, masked.argmax(axis=1))
 
 
 @dataclass
@@ -79,6 +81,16 @@ class ActingController(Protocol):
     def initial_state(self, batch_size: int): ...
 
 
+def _index_for(array, index: np.ndarray):
+    """``index`` (a numpy bool mask or int array) as ``array`` takes it: itself for a numpy
+    array, a tensor on ``array``'s device for a torch tensor."""
+    if isinstance(array, np.ndarray):
+        return index
+    import torch  # a torch state: torch is already loaded
+
+    return torch.as_tensor(index, device=array.device)
+
+
 def _zeroed(net: ActingController, state, rows: np.ndarray):
     """``state`` with the rows of ``rows`` (N,) bool zeroed: in place, or a fresh zero state
     when every row is (the nodes' N = 1)."""
@@ -86,9 +98,9 @@ def _zeroed(net: ActingController, state, rows: np.ndarray):
         return state
     if rows.all():
         return net.initial_state(len(rows))
-    mask = torch.as_tensor(rows, device=state[0].device)
-    for t in state:
-        t[mask] = 0.0
+    mask = _index_for(state[0], rows)
+    for part in state:
+        part[mask] = 0.0
     return state
 
 
@@ -108,7 +120,7 @@ class HierarchicalPolicy:
 
     def __init__(self, num_envs: int, sub: ActingController | None, meta: ActingController | None = None,
                  meta_input: Literal["image", "state"] | None = None, meta_state: str = "c"):
-        self.n = num_envs
+        self.num_envs = num_envs
         self.sub, self.meta = sub, meta
         self.meta_input = meta_input
         self.state_index = 1 if meta_state == "c" else 0  # (h, c)[state_index]
@@ -116,7 +128,7 @@ class HierarchicalPolicy:
         self.meta_state = meta.initial_state(num_envs) if meta is not None else None
         self.subgoal = np.full(num_envs, -1, np.int64)
         self.place = np.full(num_envs, NO_SUBGOAL, np.int64)
-        self.last_sub_state = np.zeros((num_envs, lstm_state_size), np.float32)
+        self.last_sub_state = np.zeros((num_envs, STATE_SIZE), np.float32)
 
     def start_episodes(self, rows: np.ndarray) -> None:
         """New episodes in ``rows``: h^M, h^S <- 0, no place, hDRQNv2's meta input zeros."""
@@ -135,17 +147,17 @@ class HierarchicalPolicy:
         Returns the subgoals (K,) int64 and the meta inputs they were chosen on (K, ...),
         K = ``rows.sum()``, in row order. Draws from ``rng`` as one :func:`epsilon_greedy`.
         """
-        idx = np.flatnonzero(rows)
-        x = self.last_sub_state[idx] if self.meta_input == "state" else obs[idx]
-        if len(idx) == self.n:
+        indices = np.flatnonzero(rows)
+        x = self.last_sub_state[indices] if self.meta_input == "state" else obs[indices]
+        if len(indices) == self.num_envs:
             q, self.meta_state = self.meta.act(x, self.meta_state)
         else:
-            state = None if self.meta_state is None else tuple(t[idx] for t in self.meta_state)
+            state = None if self.meta_state is None else tuple(part[indices] for part in self.meta_state)
             q, new_state = self.meta.act(x, state)
             if new_state is not None:
-                for t, new in zip(self.meta_state, new_state):
-                    t[torch.as_tensor(idx, device=t.device)] = new
-        subgoals = epsilon_greedy(q, eps, rng, invalid=self.place[idx])
+                for part, new in zip(self.meta_state, new_state):
+                    part[_index_for(part, indices)] = new
+        subgoals = epsilon_greedy(q, eps, rng, invalid=self.place[indices])
         self.start_options(rows, subgoals)
         return subgoals, x
 
@@ -164,11 +176,11 @@ class HierarchicalPolicy:
     def sub_end_state(self, rows: np.ndarray | None = None) -> np.ndarray:
         """The sub-controller's LSTM state that hDRQNv2's meta-controller reads (c or h):
         (N, 256) float32, or (K, 256) for ``rows``; shares memory with ``sub_state`` when
-        on the CPU and ``rows`` is ``None``."""
-        t = self.sub_state[self.state_index]
+        on the CPU (or numpy) and ``rows`` is ``None``."""
+        state = self.sub_state[self.state_index]
         if rows is not None:
-            t = t[torch.as_tensor(rows, device=t.device)]
-        return t.cpu().numpy()
+            state = state[_index_for(state, rows)]
+        return state if isinstance(state, np.ndarray) else state.cpu().numpy()
 
     def end_options(self, rows: np.ndarray, at_subgoal: np.ndarray, sub_end_state: np.ndarray | None = None) -> None:
         """The options in ``rows`` ended this step, standing on ``at_subgoal`` (N,) int

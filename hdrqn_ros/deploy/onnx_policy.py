@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
+from hdrqn_ros.deploy.specs import ALGO_SPECS, STATE_SIZE, PolicyError, stack_subgoal
 from hdrqn_ros.envs.domain import OBS_SIZE
 
 __all__ = ["POLICY_FILE", "POLICY_FORMAT", "POLICY_VERSION", "STATE_SIZE", "ALGOS", "PolicyError",
@@ -34,25 +35,11 @@ __all__ = ["POLICY_FILE", "POLICY_FORMAT", "POLICY_VERSION", "STATE_SIZE", "ALGO
 POLICY_FILE = "policy.json"
 POLICY_FORMAT = "hdrqn_ros-policy"
 POLICY_VERSION = 1
-STATE_SIZE = 256
-"""The LSTM state size (``hdrqn_ros.agents.networks.lstm_state_size``)."""
-
-ALGOS: dict[str, dict] = {
-    "hdrqn-v2": {"hierarchical": True, "recurrent": True, "meta_input": "state"},
-    "hdrqn-v1": {"hierarchical": True, "recurrent": True, "meta_input": "image"},
-    "hdqn": {"hierarchical": True, "recurrent": False, "meta_input": "image"},
-    "drqn": {"hierarchical": False, "recurrent": True, "meta_input": None},
-    "dqn": {"hierarchical": False, "recurrent": False, "meta_input": None},
-}
-"""``hdrqn_ros.agents.algorithms.ALGO_SPECS`` as plain data (that module imports torch);
-test/test_onnx_export.py checks that both tables agree."""
+ALGOS: dict[str, dict] = {algo: {"hierarchical": spec.hierarchical, "recurrent": spec.recurrent,
+                               "meta_input": spec.meta_input} for algo, spec in ALGO_SPECS.items()}
+""":data:`hdrqn_ros.deploy.specs.ALGO_SPECS` as plain dicts."""
 
 LSTMState = tuple[np.ndarray, np.ndarray]
-
-
-class PolicyError(ValueError):
-    """A policy directory that cannot be used: a missing or unreadable file, a hash that
-    does not match, or a model whose inputs/outputs do not fit the declared algorithm."""
 
 
 @dataclass(frozen=True)
@@ -102,13 +89,6 @@ def role_io(algo: str, role: str, num_actions: int, num_subgoals: int) -> tuple[
 
 def roles_of(algo: str) -> tuple[str, ...]:
     return ("meta", "sub") if ALGOS[algo]["hierarchical"] else ("sub",)
-
-
-def stack_subgoal(obs: np.ndarray, subgoal_image: np.ndarray) -> np.ndarray:
-    """The hierarchical sub-controller's input: ``obs`` (..., 44, 44, 3) and the subgoal
-    image broadcast to it, stacked to (..., 44, 44, 6) uint8 (as
-    ``hdrqn_ros.agents.algorithms.stack_subgoal``)."""
-    return np.concatenate([obs, np.broadcast_to(subgoal_image, obs.shape)], axis=-1)
 
 
 def file_sha256(path: str | Path) -> str:

@@ -1,4 +1,7 @@
-"""What every node executable shares: start-up, parameters, the spin loop, clean exit."""
+"""What every node executable shares: start-up, parameters, the spin loop, clean exit.
+
+Imports no torch (nor onnxruntime): the controllers' torch and ONNX acting networks are
+imported when :func:`make_acting_network` builds one."""
 from __future__ import annotations
 
 import signal
@@ -7,19 +10,13 @@ import threading
 from typing import Any, Callable
 
 import numpy as np
-import torch
 
-from hdrqn_ros.agents.algorithms import ALGO_SPECS, make_network
-from hdrqn_ros.agents.weights import WeightsError, load_weights
 from hdrqn_ros.config import ConfigError
+from hdrqn_ros.deploy.specs import ALGO_SPECS, PolicyError
 from hdrqn_ros.envs.registration import GRID_IDS, MONTEZUMA_IDS, make_batch
-from hdrqn_ros.middleware import (LATCHED_QOS, BackendError, Middleware, Node, ParameterError, RosArgsError,
-                                  open_middleware)
-from hdrqn_ros.protocol import wire
+from hdrqn_ros.middleware import BackendError, Middleware, Node, ParameterError, RosArgsError, open_middleware
 from hdrqn_ros.nodes.nav import NavConfigError
 from hdrqn_ros.recording.bag import BagError
-from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint
-from hdrqn_ros.throttle import Throttle
 
 ENV_DEFAULTS = {"algo": "hdrqn-v2", "env": "hdrqn/GridWorld-2Goals-v0", "view": "5", "seed": 0}
 """Parameters every training-graph node declares (the launch files set them once for all
@@ -55,60 +52,59 @@ def domain_sizes(env_id: str, view: str) -> tuple[int, int]:
 
 
 class ActingNetwork:
-    """A controller's Q-network for acting in a node, its exploration (``epsilon``,
-    ``rng``), weights from a checkpoint and from the learner's ``/learner/*_weights`` topic.
-    Inference tensors: its LSTM states are replaced, never changed in place (N = 1)."""
+    """A controller's Q-network for acting in a node, and its exploration (``epsilon``,
+    ``rng``): what :class:`~hdrqn_ros.agents.policy.HierarchicalPolicy` calls
+    (``act(x, state)``, ``initial_state(batch_size)``). :func:`make_acting_network` builds
+    one of its two kinds: torch weights (``checkpoint`` and the learner's weights topic,
+    :class:`hdrqn_ros.nodes.acting_torch.TorchActingNetwork`) or an exported ONNX policy
+    (``policy``, numpy and onnxruntime only, frozen:
+    :class:`hdrqn_ros.nodes.acting_onnx.OnnxActingNetwork`)."""
 
-    def __init__(self, node: Node, role: str, params: dict, default_epsilon: float):
-        check_algo(params["algo"])
-        torch.set_num_threads(1)
+    def __init__(self, node: Node, role: str, params: dict, default_epsilon: float,
+                 num_actions: int, num_subgoals: int):
         self.node, self.role = node, role
-        self.num_actions, self.num_subgoals = domain_sizes(params["env"], params["view"])
-        self.net = make_network(params["algo"], role, self.num_actions, self.num_subgoals)
-        self.net.eval()
+        self.num_actions, self.num_subgoals = num_actions, num_subgoals
         self.rng = np.random.default_rng(params["seed"] + (7 if role == "meta" else 11))
         self.fixed_epsilon = params["epsilon"] if params["epsilon"] >= 0 else None
         self.epsilon = self.fixed_epsilon if self.fixed_epsilon is not None else default_epsilon
-        self.weights_version = -1
-        if params["checkpoint"]:
-            self._load_checkpoint(params["checkpoint"])
-        self.rejected_weights = Throttle(node.logger, f"rejected {role} weights on {wire.WEIGHTS[role]}")
-        node.create_subscription(wire.BYTES, wire.WEIGHTS[role], self._on_weights, LATCHED_QOS)
-
-    def _load_checkpoint(self, path: str) -> None:
-        payload = load_checkpoint(path)
-        try:
-            self.net.load_state_dict(payload["agent"][self.role]["online"])
-        except (KeyError, RuntimeError) as exc:
-            raise CheckpointError(f"{path} has no {self.role} network for this algo: "
-                                  f"{str(exc).splitlines()[0]}") from None
-        self.weights_version = 0
-        self.node.logger.info("loaded %s weights from %s", self.role, path)
-
-    def _on_weights(self, msg) -> None:
-        try:
-            version = wire.read_weights_version(msg)
-            load_weights(self.net, wire.as_bytes(msg.data))
-        except (WeightsError, ValueError) as exc:
-            self.rejected_weights.warn(exc)
-            return
-        if self.weights_version < 0 or version // 100 > self.weights_version // 100:
-            self.node.logger.info("acting with the learner's %s weights of update %d", self.role, version)
-        self.weights_version = version
 
     def on_credit(self, credit: dict) -> None:
         if self.fixed_epsilon is None:
             self.epsilon = credit["eps_meta" if self.role == "meta" else "eps_sub"]
 
     def act(self, x: np.ndarray, state):
-        """``x`` (B, ...) -> (Q-values (B, n) numpy, new LSTM state): a controller of
-        :class:`~hdrqn_ros.agents.policy.HierarchicalPolicy`."""
-        with torch.inference_mode():
-            q, state = self.net.act(torch.tensor(x), state)  # a copy: x may be read-only
-        return q.numpy(), state
+        """``x`` (B, ...) -> (Q-values (B, n) numpy, new LSTM state)."""
+        raise NotImplementedError
 
     def initial_state(self, batch_size: int):
-        return self.net.initial_state(batch_size)
+        raise NotImplementedError
+
+
+def make_acting_network(node: Node, role: str, params: dict, default_epsilon: float) -> ActingNetwork:
+    """The ``role`` controller's acting network from the node's parameters: an exported
+    policy with ``policy`` (torch is never imported), else torch weights (random, or
+    ``checkpoint``'s). ``policy`` and ``checkpoint`` together: :class:`NodeConfigError`."""
+    check_algo(params["algo"])
+    if params["policy"] and params["checkpoint"]:
+        raise NodeConfigError(f"give either policy ({params['policy']}) or checkpoint ({params['checkpoint']}), "
+                              f"not both: an exported policy is acted from as it is")
+    num_actions, num_subgoals = domain_sizes(params["env"], params["view"])
+    if params["policy"]:
+        from hdrqn_ros.nodes.acting_onnx import OnnxActingNetwork
+
+        return OnnxActingNetwork(node, role, params, default_epsilon, num_actions, num_subgoals)
+    from hdrqn_ros.nodes.acting_torch import TorchActingNetwork
+
+    return TorchActingNetwork(node, role, params, default_epsilon, num_actions, num_subgoals)
+
+
+def _startup_errors() -> tuple[type[Exception], ...]:
+    """What a node reports as bad input (exit 2). A checkpoint's error class lives with the
+    torch code; a node that never imported it (the ONNX path) cannot have raised it."""
+    errors = (NodeConfigError, NavConfigError, ConfigError, ParameterError, RosArgsError, BackendError,
+              PolicyError, BagError, FileNotFoundError)
+    checkpoint = sys.modules.get("hdrqn_ros.training.checkpoint")
+    return errors + ((checkpoint.CheckpointError,) if checkpoint is not None else ())
 
 
 def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None) -> int:
@@ -116,26 +112,25 @@ def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None) 
     SIGTERM, then clean up (the object's ``close()`` first, then the middleware).
 
     SIGINT (Ctrl-C, what ``ros2 launch`` sends) and SIGTERM are a normal stop: exit code
-    the object's ``exit_code`` (0). 2 for bad parameters, arguments, checkpoints or bags."""
+    the object's ``exit_code`` (0). 2 for bad parameters, arguments, checkpoints, policies or bags."""
     argv = list(sys.argv if argv is None else argv)
     stopped = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stopped.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    mw = obj = None
+    middleware = built = None
     try:
-        mw = open_middleware(argv)
-        obj = build(mw)
-        mw.spin(until=lambda: stopped.is_set() or getattr(obj, "finished", False))
-        return getattr(obj, "exit_code", 0)
+        middleware = open_middleware(argv)
+        built = build(middleware)
+        middleware.spin(until=lambda: stopped.is_set() or getattr(built, "finished", False))
+        return getattr(built, "exit_code", 0)
     except KeyboardInterrupt:
         return 130
-    except (NodeConfigError, NavConfigError, ConfigError, ParameterError, RosArgsError, BackendError,
-            CheckpointError, BagError, FileNotFoundError) as exc:
+    except _startup_errors() as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     finally:
-        if obj is not None and hasattr(obj, "close"):
-            obj.close()
-        if mw is not None:
-            mw.shutdown()
+        if built is not None and hasattr(built, "close"):
+            built.close()
+        if middleware is not None:
+            middleware.shutdown()
         for sig, handler in previous.items():
             signal.signal(sig, handler)

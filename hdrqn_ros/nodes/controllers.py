@@ -7,28 +7,30 @@ current ``subgoal`` for every step. sub_controller: chooses each primitive ``act
 from the observation stacked with the option's subgoal image (flat DQN/DRQN: the
 observation alone); for hDRQNv2 it also publishes its LSTM state (``sub_state``).
 Both explore with the learner's epsilons (or a fixed ``epsilon`` parameter) and take new
-weights from the learner's latched weights topics.
+weights from the learner's latched weights topics, or act from an exported ONNX policy
+(``policy``: numpy and onnxruntime only, torch is never imported, frozen weights).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from hdrqn_ros.agents.algorithms import ALGO_SPECS, stack_subgoal
-from hdrqn_ros.agents.networks import lstm_state_size
 from hdrqn_ros.agents.policy import HierarchicalPolicy
+from hdrqn_ros.deploy.specs import ALGO_SPECS, STATE_SIZE, stack_subgoal
 from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
 from hdrqn_ros.nodes import nav
 from hdrqn_ros.protocol import wire
-from hdrqn_ros.nodes.common import ENV_DEFAULTS, ActingNetwork, NodeConfigError, run_node
+from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, make_acting_network, run_node
 from hdrqn_ros.protocol.follower import StepFollower, done
 
 _ONE = np.ones(1, bool)  # the rows mask of a node's policy: its one environment
 
-CONTROLLER_PARAMETERS = {**ENV_DEFAULTS, "epsilon": -1.0, "checkpoint": "", "meta_state": "c"}
+CONTROLLER_PARAMETERS = {**ENV_DEFAULTS, "epsilon": -1.0, "checkpoint": "", "policy": "", "meta_state": "c"}
 """``epsilon`` < 0: explore with the learner's schedule (1.0 until it is heard from);
-``checkpoint``: initial weights (``RUN_DIR/checkpoints/last.pt``); ``meta_state``: which
-LSTM state hDRQNv2's meta-controller reads, ``c`` or ``h``. The Nav2 adapters add
+``checkpoint``: initial weights (``RUN_DIR/checkpoints/last.pt``); ``policy``: instead, an
+exported policy directory (``hdrqn export``; torch-free, frozen; its algo, sizes and
+hDRQNv2 ``meta_state`` must be the node's); ``meta_state``: which LSTM state hDRQNv2's
+meta-controller reads, ``c`` or ``h``. The Nav2 adapters add
 :data:`~hdrqn_ros.nodes.nav.META_PARAMETERS` / :data:`~hdrqn_ros.nodes.nav.SUB_PARAMETERS`."""
 
 
@@ -40,15 +42,15 @@ class _Controller(StepFollower):
     def __init__(self, mw: Middleware, name: str):
         node = mw.create_node(name)
         super().__init__(node)
-        p = self.params = node.declare_parameters({**CONTROLLER_PARAMETERS, **self.nav_parameters})
-        if p["meta_state"] not in ("c", "h"):
-            raise NodeConfigError(f"meta_state must be 'c' or 'h', got {p['meta_state']!r}")
-        self.net = ActingNetwork(node, self.role, p, default_epsilon=1.0)
-        self.spec = ALGO_SPECS[p["algo"]]
+        params = self.params = node.declare_parameters({**CONTROLLER_PARAMETERS, **self.nav_parameters})
+        if params["meta_state"] not in ("c", "h"):
+            raise NodeConfigError(f"meta_state must be 'c' or 'h', got {params['meta_state']!r}")
+        self.net = make_acting_network(node, self.role, params, default_epsilon=1.0)
+        self.spec = ALGO_SPECS[params["algo"]]
         # this node's level of the policy, for its one environment
         sub, meta = (self.net, None) if self.role == "sub" else (None, self.net)
-        self.policy = HierarchicalPolicy(1, sub, meta, self.spec.meta_input, p["meta_state"])
-        if p.get("observation_source", "topic") == "topic":  # lock-step with the environment node
+        self.policy = HierarchicalPolicy(1, sub, meta, self.spec.meta_input, params["meta_state"])
+        if params.get("observation_source", "topic") == "topic":  # lock-step with the environment node
             node.create_subscription(wire.FLOATS, wire.ENV_STEP, self.on_env_step, wire.STEP_QOS)
         node.create_subscription(wire.FLOATS, wire.CREDIT, self._on_credit, LATCHED_QOS)
 
@@ -82,21 +84,23 @@ class SubControllerNode(_Controller):
 
     def __init__(self, mw: Middleware):
         super().__init__(mw, "sub_controller")
-        node, p = self.node, self.params
+        node, params = self.node, self.params
         self.subgoal_image = np.zeros((OBS_SIZE, OBS_SIZE, 3), np.uint8)
         self.pub_action = node.create_publisher(wire.INTS, wire.ACTION, wire.STEP_QOS)
         self.pub_state = node.create_publisher(wire.FLOATS, wire.SUB_STATE, wire.STEP_QOS) \
             if self.spec.meta_input == "state" else None
-        self.actions = nav.ActionTable.load(p["action_table"], self.net.num_actions) if p["action_table"] else None
-        self.pub_cmd = node.create_publisher(self.actions.type_name, p["cmd_vel_topic"]) if self.actions else None
-        self.goals = nav.SubgoalTable.load(p["subgoal_table"], self.net.num_subgoals) if p["subgoal_table"] else None
+        self.actions = nav.ActionTable.load(params["action_table"], self.net.num_actions) \
+            if params["action_table"] else None
+        self.pub_cmd = node.create_publisher(self.actions.type_name, params["cmd_vel_topic"]) if self.actions else None
+        self.goals = nav.SubgoalTable.load(params["subgoal_table"], self.net.num_subgoals) \
+            if params["subgoal_table"] else None
         self.free_subgoal = -1  # costmap mode: the latest subgoal heard
         self.costmaps = 0
-        source = p["observation_source"]
+        source = params["observation_source"]
         if source == "costmap":
-            if not p["view"].isdigit():
-                raise NodeConfigError(f"observation_source costmap needs a numeric view, got {p['view']!r}")
-            node.create_subscription(nav.OCCUPANCY_GRID, p["costmap_topic"], self._on_costmap, LATCHED_QOS)
+            if not params["view"].isdigit():
+                raise NodeConfigError(f"observation_source costmap needs a numeric view, got {params['view']!r}")
+            node.create_subscription(nav.OCCUPANCY_GRID, params["costmap_topic"], self._on_costmap, LATCHED_QOS)
         elif source != "topic":
             raise NodeConfigError(f"observation_source must be 'topic' or 'costmap', got {source!r}")
         else:
@@ -111,13 +115,13 @@ class SubControllerNode(_Controller):
                     wire.SUBGOAL_IMAGES, m, OBS_SIZE * self.net.num_subgoals), wire.STEP_QOS)
 
     def _on_subgoal(self, msg) -> None:
-        rec = self.decode(wire.SUBGOAL, lambda: wire.read_record(msg, wire.SUBGOAL_FIELDS, np.int64))
-        if rec is not None and self.decode(wire.SUBGOAL, lambda: wire.check_index(rec["subgoal"], self.net.num_subgoals,
-                                                                             "subgoal")) is not None:
+        choice = self.decode(wire.SUBGOAL, lambda: wire.read_record(msg, wire.SUBGOAL_FIELDS, np.int64))
+        if choice is not None and self.decode(wire.SUBGOAL, lambda: wire.check_index(
+                choice["subgoal"], self.net.num_subgoals, "subgoal")) is not None:
             if self.params["observation_source"] == "costmap":
-                self.free_subgoal = int(rec["subgoal"])
+                self.free_subgoal = int(choice["subgoal"])
             else:
-                self.put(wire.SUBGOAL, rec["key"], rec)
+                self.put(wire.SUBGOAL, choice["key"], choice)
 
     def _on_costmap(self, msg) -> None:
         """Free-running: act on each costmap update (no environment node, no lock-step)."""
@@ -143,9 +147,9 @@ class SubControllerNode(_Controller):
             self.pub_cmd.publish(self.actions.twist_msg(self.node, action, key))
 
     def _on_critic(self, msg) -> None:
-        rec = self.decode(wire.CRITIC, lambda: wire.read_record(msg, wire.CRITIC_FIELDS))
-        if rec is not None:
-            self.put(wire.CRITIC, rec["key"], rec)
+        verdict = self.decode(wire.CRITIC, lambda: wire.read_record(msg, wire.CRITIC_FIELDS))
+        if verdict is not None:
+            self.put(wire.CRITIC, verdict["key"], verdict)
 
     def received(self, step: dict) -> None:
         """hDRQNv2: where an option may end, hand the meta-controller our LSTM state after the
@@ -177,9 +181,10 @@ class SubControllerNode(_Controller):
         x = obs
         if self.spec.hierarchical:
             if self.option_starts(key):
-                g = int(self.inbox.get(wire.SUBGOAL, key)["subgoal"])
-                self.policy.start_options(_ONE, np.array([g]))
-                self.subgoal_image = self.inbox.get(wire.SUBGOAL_IMAGES, key)[g * OBS_SIZE:(g + 1) * OBS_SIZE]
+                subgoal = int(self.inbox.get(wire.SUBGOAL, key)["subgoal"])
+                self.policy.start_options(_ONE, np.array([subgoal]))
+                self.subgoal_image = self.inbox.get(wire.SUBGOAL_IMAGES, key)[subgoal * OBS_SIZE:
+                                                                              (subgoal + 1) * OBS_SIZE]
             x = stack_subgoal(obs, self.subgoal_image)
         action = int(self.policy.act(x[None], self.net.epsilon, self.net.rng)[0])
         self.acted_key = key
@@ -205,9 +210,10 @@ class MetaControllerNode(_Controller):
         super().__init__(mw, "meta_controller")
         if not self.spec.hierarchical:
             raise NodeConfigError(f"{self.params['algo']} is a flat agent: it has no meta-controller")
-        node, p = self.node, self.params
-        self.goals = nav.SubgoalTable.load(p["subgoal_table"], self.net.num_subgoals) if p["subgoal_table"] else None
-        self.pub_goal = node.create_publisher(nav.POSE_STAMPED, p["goal_pose_topic"]) if self.goals else None
+        node, params = self.node, self.params
+        self.goals = nav.SubgoalTable.load(params["subgoal_table"], self.net.num_subgoals) \
+            if params["subgoal_table"] else None
+        self.pub_goal = node.create_publisher(nav.POSE_STAMPED, params["goal_pose_topic"]) if self.goals else None
         self.pub_subgoal = node.create_publisher(wire.INTS, wire.SUBGOAL, wire.STEP_QOS)
         node.create_subscription(wire.FLOATS, wire.CRITIC, self._on_critic, wire.STEP_QOS)
         if self.spec.meta_input == "state":
@@ -217,12 +223,12 @@ class MetaControllerNode(_Controller):
                                      wire.STEP_QOS)
 
     def _on_critic(self, msg) -> None:
-        rec = self.decode(wire.CRITIC, lambda: wire.read_record(msg, wire.CRITIC_FIELDS))
-        if rec is not None:
-            self.put(wire.CRITIC, rec["key"], rec)
+        verdict = self.decode(wire.CRITIC, lambda: wire.read_record(msg, wire.CRITIC_FIELDS))
+        if verdict is not None:
+            self.put(wire.CRITIC, verdict["key"], verdict)
 
     def _on_sub_state(self, msg) -> None:
-        got = self.decode(wire.SUB_STATE, lambda: wire.read_state(msg, lstm_state_size))
+        got = self.decode(wire.SUB_STATE, lambda: wire.read_state(msg, STATE_SIZE))
         if got is not None:
             self.put(wire.SUB_STATE, *got)
 
@@ -249,8 +255,8 @@ class MetaControllerNode(_Controller):
             sub_end = self.inbox.get(wire.SUB_STATE, int(step["prev_key"]))[None] if state_input else None
             self.policy.end_options(_ONE, np.array([int(step["at_subgoal"])]), sub_end)
         obs = None if state_input else self.inbox.get(wire.OBSERVATION, key)[None]
-        g, _ = self.policy.choose_subgoals(_ONE, obs, self.net.epsilon, self.net.rng)
-        subgoal = int(g[0])
+        chosen, _ = self.policy.choose_subgoals(_ONE, obs, self.net.epsilon, self.net.rng)
+        subgoal = int(chosen[0])
         replies = [(self.pub_subgoal, wire.make_record(self.node, wire.INTS, wire.SUBGOAL_FIELDS, [key, subgoal, 1]))]
         if self.pub_goal is not None:
             stamp = wire.Stamp.of(key)

@@ -1,0 +1,60 @@
+"""A controller node's torch acting network: random or ``checkpoint`` weights, then the
+learner's ``/learner/*_weights`` topic. Imported only when a node acts with torch
+(:func:`hdrqn_ros.nodes.common.make_acting_network`)."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from hdrqn_ros.agents.algorithms import make_network
+from hdrqn_ros.agents.weights import WeightsError, load_weights
+from hdrqn_ros.middleware import LATCHED_QOS, Node
+from hdrqn_ros.nodes.common import ActingNetwork
+from hdrqn_ros.protocol import wire
+from hdrqn_ros.throttle import Throttle
+from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint
+
+
+class TorchActingNetwork(ActingNetwork):
+    """Inference tensors: its LSTM states are replaced, never changed in place (N = 1)."""
+
+    def __init__(self, node: Node, role: str, params: dict, default_epsilon: float,
+                 num_actions: int, num_subgoals: int):
+        super().__init__(node, role, params, default_epsilon, num_actions, num_subgoals)
+        torch.set_num_threads(1)
+        self.net = make_network(params["algo"], role, num_actions, num_subgoals)
+        self.net.eval()
+        self.weights_version = -1
+        if params["checkpoint"]:
+            self._load_checkpoint(params["checkpoint"])
+        self.rejected_weights = Throttle(node.logger, f"rejected {role} weights on {wire.WEIGHTS[role]}")
+        node.create_subscription(wire.BYTES, wire.WEIGHTS[role], self._on_weights, LATCHED_QOS)
+
+    def _load_checkpoint(self, path: str) -> None:
+        payload = load_checkpoint(path)
+        try:
+            self.net.load_state_dict(payload["agent"][self.role]["online"])
+        except (KeyError, RuntimeError) as exc:
+            raise CheckpointError(f"{path} has no {self.role} network for this algo: "
+                                  f"{str(exc).splitlines()[0]}") from None
+        self.weights_version = 0
+        self.node.logger.info("loaded %s weights from %s", self.role, path)
+
+    def _on_weights(self, msg) -> None:
+        try:
+            version = wire.read_weights_version(msg)
+            load_weights(self.net, wire.as_bytes(msg.data))
+        except (WeightsError, ValueError) as exc:
+            self.rejected_weights.warn(exc)
+            return
+        if self.weights_version < 0 or version // 100 > self.weights_version // 100:
+            self.node.logger.info("acting with the learner's %s weights of update %d", self.role, version)
+        self.weights_version = version
+
+    def act(self, x: np.ndarray, state):
+        with torch.inference_mode():
+            q, state = self.net.act(torch.tensor(x), state)  # a copy: x may be read-only
+        return q.numpy(), state
+
+    def initial_state(self, batch_size: int):
+        return self.net.initial_state(batch_size)

@@ -17,6 +17,7 @@ from hdrqn_ros.envs.registration import GRID_IDS, MONTEZUMA_IDS, make_batch
 from hdrqn_ros.middleware import BackendError, Middleware, Node, ParameterError, RosArgsError, open_middleware
 from hdrqn_ros.nodes.nav import NavConfigError
 from hdrqn_ros.recording.bag import BagError
+from hdrqn_ros.training.checkpoint import CheckpointError
 
 ENV_DEFAULTS = {"algo": "hdrqn-v2", "env": "hdrqn/GridWorld-2Goals-v0", "view": "5", "seed": 0}
 """Parameters every training-graph node declares (the launch files set them once for all
@@ -98,13 +99,9 @@ def make_acting_network(node: Node, role: str, params: dict, default_epsilon: fl
     return TorchActingNetwork(node, role, params, default_epsilon, num_actions, num_subgoals)
 
 
-def _startup_errors() -> tuple[type[Exception], ...]:
-    """What a node reports as bad input (exit 2). A checkpoint's error class lives with the
-    torch code; a node that never imported it (the ONNX path) cannot have raised it."""
-    errors = (NodeConfigError, NavConfigError, ConfigError, ParameterError, RosArgsError, BackendError,
-              PolicyError, BagError, FileNotFoundError)
-    checkpoint = sys.modules.get("hdrqn_ros.training.checkpoint")
-    return errors + ((checkpoint.CheckpointError,) if checkpoint is not None else ())
+STARTUP_ERRORS = (NodeConfigError, NavConfigError, ConfigError, ParameterError, RosArgsError, BackendError,
+                  CheckpointError, PolicyError, BagError, FileNotFoundError)
+"""What a node reports as bad input: exit code 2."""
 
 
 def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None) -> int:
@@ -124,7 +121,7 @@ def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None) 
         return getattr(built, "exit_code", 0)
     except KeyboardInterrupt:
         return 130
-    except _startup_errors() as exc:
+    except STARTUP_ERRORS as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     finally:

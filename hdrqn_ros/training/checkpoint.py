@@ -1,5 +1,8 @@
 """Checkpoints: tensors and plain values only, written atomically, read with
-``torch.load(weights_only=True)`` (no code runs from a checkpoint file)."""
+``torch.load(weights_only=True)`` (no code runs from a checkpoint file).
+
+torch is imported where it is used, so that code without torch (a controller node acting on
+an exported ONNX policy) can name :class:`CheckpointError`."""
 from __future__ import annotations
 
 import json
@@ -7,7 +10,6 @@ import os
 import tempfile
 from pathlib import Path
 
-import torch
 
 FORMAT = "hdrqn_ros-checkpoint"
 VERSION = 1
@@ -18,6 +20,8 @@ class CheckpointError(ValueError):
 
 
 def _all_finite(state) -> bool:
+    import torch
+
     if isinstance(state, torch.Tensor):
         return not state.is_floating_point() or bool(torch.isfinite(state).all())
     if isinstance(state, dict):
@@ -36,6 +40,8 @@ def save_checkpoint(path: str | Path, *, config: dict, agent_state: dict, progre
     path.parent.mkdir(parents=True, exist_ok=True)
     payload = {"format": FORMAT, "version": VERSION, "config": json.dumps(config),
                "agent": agent_state, "progress": progress}
+    import torch
+
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as f:
@@ -53,6 +59,8 @@ def load_checkpoint(path: str | Path, map_location: str = "cpu") -> dict:
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
+    import torch
+
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # corrupted, truncated, or not a torch file at all

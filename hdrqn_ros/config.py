@@ -38,10 +38,17 @@ class EpsilonSchedule(_Strict):
         return self.start + frac * (self.end - self.start)
 
 
+THESIS_LR = 1e-4
+"""Table 4.7's learning rate, for every controller but one (below)."""
+STATE_META_LR = 1e-3
+"""The author's code's learning rate for hDRQNv2's meta MLP on the sub-controller's LSTM state."""
+
+
 class ControllerConfig(_Strict):
     """Hyper-parameters of one controller (thesis Table 4.7)."""
 
-    lr: float = Field(1e-4, gt=0.0)
+    lr: float | None = Field(THESIS_LR, gt=0.0, description="Adam's learning rate; null: the algorithm's "
+                             "(meta-controller: 1e-3 for hDRQNv2's MLP, else 1e-4)")
     gamma: float = Field(0.99, ge=0.0, le=1.0)
     tau: float = Field(0.001, gt=0.0, le=1.0)
     batch_size: int = Field(4, ge=1)
@@ -61,8 +68,15 @@ def _sub_defaults() -> ControllerConfig:
 
 
 def _meta_defaults() -> ControllerConfig:
-    return ControllerConfig(batch_size=12, seq_len=2, replay_episodes=1000, lr=1e-3,
+    return ControllerConfig(batch_size=12, seq_len=2, replay_episodes=1000, lr=None,
                             epsilon=EpsilonSchedule(start=1.0, end=0.05, steps=150_000))
+
+
+def _flat_defaults() -> ControllerConfig:
+    # Table 4.7's gamma and epsilon end; a flat agent faces the whole task, as the meta-controller
+    # does, so it anneals over the meta's 150,000 steps (the thesis gives no length)
+    return ControllerConfig(batch_size=4, seq_len=8, replay_episodes=5000, gamma=0.99,
+                            epsilon=EpsilonSchedule(start=1.0, end=0.1, steps=150_000))
 
 
 MAX_ENVS = 4096
@@ -89,8 +103,27 @@ class TrainConfig(_Strict):
     checkpoint_every: int = Field(1000, ge=1, description="episodes between checkpoints")
     torch_threads: int = Field(1, ge=1, description="torch intra-op threads; 1 is fastest for these small networks on a CPU")
     parallel_updates: bool = Field(True, description="run the meta and sub updates in two threads at once (they share nothing)")
-    sub: ControllerConfig = Field(default_factory=_sub_defaults)
-    meta: ControllerConfig = Field(default_factory=_meta_defaults)
+    sub: ControllerConfig = Field(default_factory=_sub_defaults, description="hierarchical agents' sub-controller")
+    meta: ControllerConfig = Field(default_factory=_meta_defaults, description="hierarchical agents' meta-controller")
+    flat: ControllerConfig = Field(default_factory=_flat_defaults, description="DQN's and DRQN's one controller")
+
+    def controller(self, role: str) -> ControllerConfig:
+        """What ``role``'s controller learns with, its learning rate resolved: ``"sub"`` is the
+        sub-controller of a hierarchical agent or the one controller of a flat one (``flat``),
+        ``"meta"`` the meta-controller."""
+        from hdrqn_ros.deploy.specs import ALGO_SPECS
+
+        spec = ALGO_SPECS[self.algo]
+        if role == "sub":
+            section = self.sub if spec.hierarchical else self.flat
+        elif role == "meta":
+            section = self.meta
+        else:
+            raise ValueError(f"controller role must be 'sub' or 'meta', got {role!r}")
+        if section.lr is not None:
+            return section
+        lr = STATE_META_LR if role == "meta" and spec.meta_input == "state" else THESIS_LR
+        return section.model_copy(update={"lr": lr})
 
     @field_validator("device")
     @classmethod

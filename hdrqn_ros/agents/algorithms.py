@@ -53,12 +53,13 @@ class Agent:
         self.spec = spec = ALGO_SPECS[cfg.algo]
         self.num_actions = num_actions
         self.num_subgoals = num_subgoals
-        self.sub = Controller("sub", make_network(cfg.algo, "sub", num_actions, num_subgoals), cfg.sub,
-                              _sub_window_input if spec.hierarchical else _frames, device=cfg.device, seed=cfg.seed)
+        self.sub = Controller("sub", make_network(cfg.algo, "sub", num_actions, num_subgoals),
+                              cfg.controller("sub"), _sub_window_input if spec.hierarchical else _frames,
+                              device=cfg.device, seed=cfg.seed)
         self.meta: Controller | None = None
         if spec.hierarchical:
-            self.meta = Controller("meta", make_network(cfg.algo, "meta", num_actions, num_subgoals), cfg.meta,
-                                   _frames, device=cfg.device, seed=cfg.seed + 1)
+            self.meta = Controller("meta", make_network(cfg.algo, "meta", num_actions, num_subgoals),
+                                   cfg.controller("meta"), _frames, device=cfg.device, seed=cfg.seed + 1)
 
     @property
     def controllers(self) -> list[Controller]:

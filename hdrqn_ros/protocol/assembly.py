@@ -45,7 +45,8 @@ class TransitionAssembler(StepFollower):
         self.spec = ALGO_SPECS[cfg.algo]
         self.num_subgoals = num_subgoals
         self.num_actions = batch_class(cfg.env).num_actions
-        self.builder_args = (1, self.spec.hierarchical, cfg.sub.gamma, cfg.meta.gamma, cfg.smdp_discount)
+        self.builder_args = (1, self.spec.hierarchical, cfg.controller("sub").gamma, cfg.meta.gamma,
+                             cfg.smdp_discount)
         self.env_steps_seen = 0  # the env's own step count, from its latest env_step
         self.transitions = 0
         self.skipped = 0  # steps seen while waiting for an episode boundary

@@ -68,7 +68,7 @@ def play(agent: Agent, cfg: TrainConfig, episodes: int, seed: int, epsilon: floa
     quota = -(-episodes // n)
     batch = make_batch(cfg.env, n, **cfg.env_kwargs)
     rollout = Rollout(batch, agent, seed=seed, meta_state=cfg.meta_state, record_subgoal_images=sink is not None)
-    builder = EpisodeBuilder(n, agent.meta is not None, cfg.sub.gamma, cfg.meta.gamma)
+    builder = EpisodeBuilder(n, agent.meta is not None, cfg.controller("sub").gamma, cfg.meta.gamma)
     results: dict[tuple[int, int], EpisodeStats] = {}
     played = np.zeros(n, np.int64)
     rng = np.random.default_rng(seed)
@@ -148,7 +148,7 @@ class Learner:
         cfg = self.cfg
         if self.env_steps < cfg.learning_starts:
             return 1.0, 1.0
-        eps_sub = cfg.sub.epsilon.value(self.env_steps - cfg.learning_starts)
+        eps_sub = cfg.controller("sub").epsilon.value(self.env_steps - cfg.learning_starts)
         if self.episodes < cfg.sub_only_episodes:  # phase 1: subgoals at random
             return eps_sub, 1.0
         if self.meta_begin is None:

@@ -32,11 +32,10 @@ import subprocess
 import sys
 import tarfile
 import tempfile
-import time
 from pathlib import Path
 
-from hdrqn_ros.experiments import (Experiment, RunSpec, RUN_METRICS, config_dir, default_jobs, episodes_logged,
-                                   run_done, set_aside, write_manifest, _target_episodes)
+from hdrqn_ros.experiments import (RUN_METRICS, Experiment, RunSpec, config_dir, default_jobs, episodes_logged,
+                                   set_aside, split_finished, target_episodes, write_manifest)
 
 INSTALL_HINT = "pip install 'hdrqn_ros[cluster]'"
 USAGE_STATS_ENV = "RAY_USAGE_STATS_ENABLED"
@@ -331,17 +330,11 @@ def run_experiment_on_ray(exp: Experiment, runs: list[RunSpec], out: Path, episo
     out = Path(out)
     config = config_dir() / exp.config
     write_manifest(exp, runs, out, episodes, extra_sets)
-    results: dict[str, int] = {}
-    pending = []
-    for r in runs:
-        if run_done(out / r.name, episodes):
-            results[r.name] = 0
-        else:
-            pending.append(r)
+    results, pending = split_finished(runs, out, episodes)
     if not pending:
         return results
     ray = import_ray()
-    target = _target_episodes(config, episodes)
+    target = target_episodes(config, episodes)
     started = start_ray(address)
     bar = board = None
     refs: dict = {}

@@ -200,14 +200,8 @@ def run_experiment(exp: Experiment, runs: list[RunSpec], out: Path, episodes: in
     """
     config = config_dir() / exp.config
     write_manifest(exp, runs, out, episodes, extra_sets)
-    results: dict[str, int] = {}
-    pending = []
-    for run in runs:
-        if run_done(out / run.name, episodes):
-            results[run.name] = 0
-        else:
-            pending.append(run)
-    target = _target_episodes(config, episodes)
+    results, pending = split_finished(runs, out, episodes)
+    target = target_episodes(config, episodes)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -259,7 +253,14 @@ def run_experiment(exp: Experiment, runs: list[RunSpec], out: Path, episodes: in
     return results
 
 
-def _target_episodes(config: Path, episodes: int | None) -> int:
+def split_finished(runs: list[RunSpec], out: Path, episodes: int | None) -> tuple[dict[str, int], list[RunSpec]]:
+    """({name: 0} of the runs already finished in ``out``, the runs still to do, in order)."""
+    finished = {run.name: 0 for run in runs if run_done(out / run.name, episodes)}
+    return finished, [run for run in runs if run.name not in finished]
+
+
+def target_episodes(config: Path, episodes: int | None) -> int:
+    """Episodes per run: ``episodes``, else the experiment config's."""
     if episodes is not None:
         return episodes
     from hdrqn_ros.config import build_config

@@ -21,7 +21,7 @@ from hdrqn_ros.agents.controller import Controller
 from hdrqn_ros.agents.networks import lstm_state_size, make_image_qnet, make_state_qnet
 from hdrqn_ros.agents.replay import SequenceBatch
 from hdrqn_ros.config import TrainConfig
-from hdrqn_ros.deploy.specs import ALGO_SPECS, AlgoSpec, stack_subgoal  # noqa: F401 (torch-free; re-exported)
+from hdrqn_ros.deploy.specs import ALGO_SPECS, stack_subgoal  # noqa: F401 (torch-free; re-exported)
 
 
 def make_network(algo: str, role: str, num_actions: int, num_subgoals: int):

@@ -96,3 +96,10 @@ from hdrqn_ros.cli import main
 sys.exit(main(["up", "--out", {str(tmp_path / "run")!r}, "--episodes", "1"]))
 """, env=env)
     assert up.returncode == 2 and str(bad) in up.stderr, up.stderr
+
+
+def test_cyclone_names_an_interface_that_does_not_exist():
+    from hdrqn_ros.middleware.cyclone import CycloneMiddleware
+
+    with pytest.raises(ParameterError, match="dds_interface 'no-such-if0'"):
+        CycloneMiddleware([], interface="no-such-if0")

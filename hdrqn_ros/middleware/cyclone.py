@@ -33,7 +33,7 @@ from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
 from hdrqn_ros.middleware.messages import DecodeError, decode, message_class
-from hdrqn_ros.middleware.network import LOOPBACK, cyclone_config
+from hdrqn_ros.middleware.network import LOOPBACK, cyclone_config, interface_address
 from hdrqn_ros.middleware.port import DEFAULT_QOS, Middleware, Node, QoS
 from hdrqn_ros.middleware.ros_args import (check_overrides, check_parameter_type, process_settings,
                                            remap_and_resolve, split_ros_args)
@@ -208,6 +208,8 @@ class CycloneMiddleware(Middleware):
             self._domain = Domain(domain_id, os.environ["CYCLONEDDS_URI"])
         else:
             self.interface = interface or LOOPBACK
+            if self.interface != LOOPBACK:
+                interface_address(self.interface)  # a ParameterError naming it, not Cyclone's bare DDSException
             self._domain = Domain(domain_id, cyclone_config(self.interface))
         self.participant = DomainParticipant(domain_id, qos=Qos(Policy.Userdata(b"enclave=/;")))
         self._topics: dict[str, Topic] = {}

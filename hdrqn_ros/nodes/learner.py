@@ -189,7 +189,7 @@ class LearnerNode:
         learner, cfg = self.learner, self.learner.cfg
         learner.save()
         wall = learner.wall_s  # the training's, without the final evaluation
-        final = learner.evaluate(log=False) if self.params["evaluate"] and cfg.eval_every else None
+        final = learner.evaluate() if self.params["evaluate"] and cfg.eval_every else None  # eval.csv too
         self.summary = learner.summary(final, wall, groups={g.ns or "/": g.stats() for g in self.groups},
                                        prefilled={"episodes": self.prefilled[0], "steps": self.prefilled[1]},
                                        recovered={"episodes": self.recovered[0], "steps": self.recovered[1]})

@@ -49,6 +49,11 @@ class EpisodeStats:
     option_log: list[OptionOutcome] = field(default_factory=list)  # hierarchical agents only
 
 
+META_FIELDS = (("action", np.uint8), ("reward", np.float32), ("terminal", bool), ("discount", np.float32),
+               ("next_invalid", np.int8))
+"""The meta-controller's replay fields, in the order of ``_Open.meta_steps``' tuples."""
+
+
 @dataclass
 class _Open:
     """One environment's episode in progress."""
@@ -60,11 +65,7 @@ class _Open:
     segment_starts: list = field(default_factory=list)
     segment_images: list = field(default_factory=list)
     meta_frames: list = field(default_factory=list)
-    meta_action: list = field(default_factory=list)
-    meta_reward: list = field(default_factory=list)
-    meta_terminal: list = field(default_factory=list)
-    meta_discount: list = field(default_factory=list)
-    meta_next_invalid: list = field(default_factory=list)
+    meta_steps: list = field(default_factory=list)  # per finished option: (action, reward, terminal, discount, next_invalid)
     classical: float = 0.0
     extrinsic: float = 0.0
     intrinsic: float = 0.0
@@ -123,11 +124,7 @@ class EpisodeBuilder:
                 meta_r, discount, terminal, next_invalid = meta_transition(
                     step.option_extrinsic[i], env.terminated[i], option_steps, env.at_subgoal[i], self.meta_gamma,
                     self.smdp_discount)
-                ep.meta_action.append(step.subgoal[i])
-                ep.meta_reward.append(meta_r)
-                ep.meta_terminal.append(terminal)
-                ep.meta_discount.append(discount)
-                ep.meta_next_invalid.append(next_invalid)
+                ep.meta_steps.append((step.subgoal[i], meta_r, terminal, discount, next_invalid))
             if env.done[i]:
                 finished.append(self._close(i, ep, step))
                 self.open[i] = _Open()
@@ -147,11 +144,8 @@ class EpisodeBuilder:
         if self.hierarchical:
             meta = Episode(
                 frames=np.stack(ep.meta_frames + [step.meta_next_input[i].copy()]),
-                fields={"action": np.asarray(ep.meta_action, np.uint8),
-                        "reward": np.asarray(ep.meta_reward, np.float32),
-                        "terminal": np.asarray(ep.meta_terminal, bool),
-                        "discount": np.asarray(ep.meta_discount, np.float32),
-                        "next_invalid": np.asarray(ep.meta_next_invalid, np.int8)},
+                fields={name: np.asarray(column, dtype) for (name, dtype), column in
+                        zip(META_FIELDS, list(zip(*ep.meta_steps)) or [()] * len(META_FIELDS))},
             )
         stats = EpisodeStats(steps=t, classical=ep.classical, extrinsic=ep.extrinsic, intrinsic=ep.intrinsic,
                              success=bool(env.success[i]), options=len(ep.segment_starts), visits=ep.visits,

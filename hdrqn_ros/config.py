@@ -101,6 +101,9 @@ class TrainConfig(_Strict):
     eval_every: int = Field(500, ge=0, description="episodes between greedy evaluations (0: never)")
     eval_episodes: int = Field(100, ge=1, le=100_000)
     checkpoint_every: int = Field(1000, ge=1, description="episodes between checkpoints")
+    save_replay: bool = Field(True, description="write the replay memory beside each checkpoint "
+                              "(checkpoints/replay-*.safetensors) and restore it on --resume; false for huge "
+                              "replays (a resumed run then starts with an empty replay)")
     torch_threads: int = Field(1, ge=1, description="torch intra-op threads; 1 is fastest for these small networks on a CPU")
     parallel_updates: bool = Field(True, description="run the meta and sub updates in two threads at once (they share nothing)")
     sub: ControllerConfig = Field(default_factory=_sub_defaults, description="hierarchical agents' sub-controller")

@@ -91,6 +91,11 @@ class LearnerNode:
             if not self.prefilled[0]:
                 raise NodeConfigError(f"no complete episode for {cfg.algo} in {bags}")
         recorded = earlier_recordings(params["record"], node.logger) if resume and params["record"] else []
+        if recorded and self.learner.replay_restored:
+            # The recordings hold every acknowledged episode, those after the checkpoint too:
+            # refill from them alone rather than on top of the checkpoint's replay snapshot.
+            for replay in self.learner.replays().values():
+                replay.clear()
         self.recovered = self._fill(recorded)
         if recorded:
             node.logger.info("recovered %d acknowledged episodes (%d transitions) from %s", *self.recovered,

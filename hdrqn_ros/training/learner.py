@@ -22,6 +22,7 @@ from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint, save
 from hdrqn_ros.training.episodes import EpisodeBuilder, EpisodeStats, FinishedEpisode
 from hdrqn_ros.training.interrupts import stop_between_steps
 from hdrqn_ros.training.metrics import MetricsLog
+from hdrqn_ros.training.replay_snapshot import load_replay_snapshot, remove_other_snapshots, save_replay_snapshot
 from hdrqn_ros.training.rollout import Rollout
 
 EVAL_SEED_OFFSET = 1_000_003
@@ -128,6 +129,7 @@ class Learner:
         self.episodes = 0
         self.env_steps = 0
         self.meta_begin: int | None = None  # env step at which the meta-controller starts learning
+        self.replay_restored = False  # whether --resume refilled the replay from its snapshot
         if resume:
             self._resume()
         elif self.checkpoint_path.exists():
@@ -170,10 +172,36 @@ class Learner:
         prog = payload["progress"]
         self.episodes, self.env_steps = int(prog["episodes"]), int(prog["env_steps"])
         self.meta_begin = prog.get("meta_begin")
+        snapshot = prog.get("replay")
+        self.replay_restored = bool(snapshot) and self.cfg.save_replay
+        if self.replay_restored:
+            load_replay_snapshot(self.checkpoint_path.parent / snapshot["file"], self.replays(), snapshot, self._run_id())
+
+    def replays(self) -> dict:
+        """The agent's replays by role: ``sub`` (a flat agent's one controller) and ``meta``."""
+        out = {"sub": self.agent.sub.replay}
+        if self.agent.meta is not None:
+            out["meta"] = self.agent.meta.replay
+        return out
+
+    def _run_id(self) -> dict:
+        return {"algo": self.cfg.algo, "env": self.cfg.env, "env_kwargs": self.cfg.env_kwargs}
 
     def save(self) -> None:
-        save_checkpoint(self.checkpoint_path, config=self.cfg.model_dump(), agent_state=self.agent.state_dict(),
-                        progress={"episodes": self.episodes, "env_steps": self.env_steps, "meta_begin": self.meta_begin})
+        """Write the checkpoint and, with ``save_replay``, first the replay snapshot it names
+        (:mod:`~hdrqn_ros.training.replay_snapshot`); older snapshots go once it is written."""
+        progress = {"episodes": self.episodes, "env_steps": self.env_steps, "meta_begin": self.meta_begin}
+        directory = self.checkpoint_path.parent
+        if self.cfg.save_replay:
+            progress["replay"] = save_replay_snapshot(directory, self.replays(), self._run_id())
+        try:
+            save_checkpoint(self.checkpoint_path, config=self.cfg.model_dump(), agent_state=self.agent.state_dict(),
+                            progress=progress)
+        except BaseException:
+            if "replay" in progress:  # the snapshot no checkpoint names
+                (directory / progress["replay"]["file"]).unlink(missing_ok=True)
+            raise
+        remove_other_snapshots(directory, progress.get("replay", {}).get("file"))
 
     @contextmanager
     def saving_on_stop(self) -> Iterator[Callable[[], None]]:

@@ -15,7 +15,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "hdrqn_ros"
 
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
-    ("base", ("hdrqn_ros.throttle", "hdrqn_ros.yaml_files")),
+    ("base", ("hdrqn_ros.throttle", "hdrqn_ros.yaml_files", "hdrqn_ros.hashing")),
     ("envs and critic", ("hdrqn_ros.envs", "hdrqn_ros.critic", "hdrqn_ros.__init__")),
     ("torch-free policy", ("hdrqn_ros.deploy",)),
     ("config", ("hdrqn_ros.config",)),

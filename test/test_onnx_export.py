@@ -17,6 +17,7 @@ import hdrqn_ros
 from hdrqn_ros.agents.algorithms import ALGO_SPECS, make_network, stack_subgoal
 from hdrqn_ros.config import build_config
 from hdrqn_ros.deploy import OnnxPolicy, PolicyError, role_io
+from hdrqn_ros.hashing import file_sha256
 from hdrqn_ros.deploy import onnx_policy
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
@@ -224,7 +225,7 @@ def test_policy_json_describes_the_models(exported, algo):
     for role, entry in meta["roles"].items():
         path = policy_dir / entry["file"]
         assert entry["file"] == f"{role}.onnx"
-        assert entry["sha256"] == onnx_policy.file_sha256(path)
+        assert entry["sha256"] == file_sha256(path)
         assert entry["verified_max_abs_error"] < 1e-5
         model = onnx.load(str(path))
         onnx.checker.check_model(model)

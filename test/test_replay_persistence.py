@@ -10,7 +10,6 @@ import time
 
 import numpy as np
 import pytest
-import torch
 
 from hdrqn_ros.config import build_config
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint

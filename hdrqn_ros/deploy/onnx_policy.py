@@ -18,7 +18,6 @@ This module imports only the standard library, numpy and onnxruntime (and the
 """
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,9 +27,10 @@ import onnxruntime as ort
 
 from hdrqn_ros.deploy.specs import ALGO_SPECS, STATE_SIZE, PolicyError, stack_subgoal
 from hdrqn_ros.envs.domain import OBS_SIZE
+from hdrqn_ros.hashing import file_sha256
 
 __all__ = ["POLICY_FILE", "POLICY_FORMAT", "POLICY_VERSION", "STATE_SIZE", "ALGOS", "PolicyError",
-           "TensorSpec", "role_io", "stack_subgoal", "file_sha256", "OnnxPolicy"]
+           "TensorSpec", "role_io", "stack_subgoal", "OnnxPolicy"]
 
 POLICY_FILE = "policy.json"
 POLICY_FORMAT = "hdrqn_ros-policy"
@@ -89,14 +89,6 @@ def role_io(algo: str, role: str, num_actions: int, num_subgoals: int) -> tuple[
 
 def roles_of(algo: str) -> tuple[str, ...]:
     return ("meta", "sub") if ALGOS[algo]["hierarchical"] else ("sub",)
-
-
-def file_sha256(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 _ORT_TYPES = {"tensor(uint8)": "uint8", "tensor(float)": "float32"}

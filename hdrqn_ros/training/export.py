@@ -33,9 +33,10 @@ import hdrqn_ros
 from hdrqn_ros.agents.algorithms import ALGO_SPECS, make_network
 from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.deploy.onnx_policy import (POLICY_FILE, POLICY_FORMAT, POLICY_VERSION, STATE_SIZE,
-                                          TensorSpec, file_sha256, role_io, roles_of)
+                                          TensorSpec, role_io, roles_of)
 from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.envs.registration import make_batch
+from hdrqn_ros.hashing import file_sha256
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint
 
 __all__ = ["OPSET", "ExportError", "ActStep", "export_policy", "export_network", "load_acting_networks"]

@@ -16,7 +16,6 @@ last checkpoint beside the snapshot it names (disk holds two snapshots for a mom
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import tempfile
@@ -26,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from hdrqn_ros.agents.replay import Episode, EpisodeReplay
+from hdrqn_ros.hashing import file_sha256
 from hdrqn_ros.training.checkpoint import CheckpointError
 
 FORMAT = "hdrqn_ros-replay"
@@ -33,15 +33,7 @@ VERSION = 1
 META_KEY = "hdrqn_ros"
 PREFIX, SUFFIX = "replay-", ".safetensors"
 
-__all__ = ["save_replay_snapshot", "load_replay_snapshot", "remove_other_snapshots", "file_sha256"]
-
-
-def file_sha256(path: str | Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 22), b""):
-            h.update(chunk)
-    return h.hexdigest()
+__all__ = ["save_replay_snapshot", "load_replay_snapshot", "remove_other_snapshots"]
 
 
 def _role_tensors(role: str, replay: EpisodeReplay) -> tuple[dict[str, np.ndarray], dict]:

@@ -220,13 +220,14 @@ class RclpyNode(Node):
     def resolve_topic(self, topic: str) -> str:
         return self._node.resolve_topic_name(topic)
 
-    def destroy(self) -> None:
-        """Leave the executor and destroy the rclpy node; safe to call twice."""
+    def destroy(self, leave_executor: bool = True) -> None:
+        """Leave the executor (unless it is already shut down) and destroy the rclpy node;
+        safe to call twice."""
         if self._destroyed:
             return
         self._destroyed = True
         executor = self._node.executor
-        if executor is not None:
+        if leave_executor and executor is not None:
             executor.remove_node(self._node)
         self._node.destroy_node()
 
@@ -294,12 +295,13 @@ class RclpyMiddleware(Middleware):
             return
 
     def shutdown(self) -> None:
-        """Destroy the nodes, stop the executor and shut the context down; safe to call twice."""
+        """Stop the executor, destroy the nodes and shut the context down, in rclpy's own order
+        (no callback runs while the nodes go); safe to call twice."""
         if self._closed:
             return
         self._closed = True
-        for node in self._nodes:
-            node.destroy()
-        self._nodes.clear()
         self._executor.shutdown()
+        for node in self._nodes:
+            node.destroy(leave_executor=False)
+        self._nodes.clear()
         rclpy.try_shutdown(context=self._context)

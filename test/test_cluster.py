@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
-ray = pytest.importorskip("ray")
+ray = pytest.importorskip("ray", reason="Ray is not installed (pip install '.[cluster]')")
 
 from hdrqn_ros import cluster  # noqa: E402
 from hdrqn_ros.experiments import EXPERIMENTS, episodes_logged  # noqa: E402

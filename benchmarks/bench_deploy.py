@@ -1,5 +1,5 @@
 """Deployment cost of a controller: per-decision latency at batch 1 and resident memory,
-torch (what a controller node does today, ``ActingNetwork.choose``) against the exported
+torch (what a controller node does with ``checkpoint:=``, ``TorchActingNetwork.act``) against the exported
 ONNX policy (``hdrqn_ros.deploy.OnnxPolicy``, no torch).
 
 Prints one JSON object. Goals (issue 20): <= 0.2 ms per decision, <= 100 MiB resident
@@ -97,7 +97,7 @@ def torch_decider(net):
     state = [net.initial_state(1)]
 
     def decide(x: np.ndarray) -> int:
-        with torch.inference_mode():  # as ActingNetwork.choose
+        with torch.inference_mode():  # as TorchActingNetwork.act
             q, state[0] = net.act(torch.tensor(x[None]), state[0])
         return int(q.numpy().argmax())
     return decide

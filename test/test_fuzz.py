@@ -391,6 +391,18 @@ def test_valid_stream_assembles_into_its_episodes():
     assert asm.rejected == 0
 
 
+def test_the_learner_holds_a_first_step_only_with_the_controllers_answers():
+    """Credit waits for this (``GroupAssembler.publish_credit``): a subscription matched
+    late would miss the first step's action or subgoal, and every later step would wait."""
+    asm = TransitionAssembler("/", CFG, NUM_SUBGOALS, [].append, logger=LOG)
+    handlers, first, held = asm.inputs(), None, []
+    for topic, msg in group_stream(VALID_EPISODES)[:6]:  # env_step, observation, critic, action, subgoal, images
+        handlers[topic][1](msg)
+        first = first or wire.read_step(msg)
+        held.append(asm.holds_answers(first))
+    assert held == [False, False, False, False, False, True]
+
+
 @settings(max_examples=150, **QUICK)
 @given(episodes=fuzzed_episodes)
 def test_learner_assembles_random_messages_without_crashing(episodes):

@@ -101,6 +101,16 @@ class TransitionAssembler(StepFollower):
     def received(self, step: dict) -> None:
         self.env_steps_seen = int(step["env_steps"])
 
+    def holds_answers(self, step: dict) -> bool:
+        """Whether the inbox holds ``step``'s observation and the controllers' answers to it:
+        its action and, at an episode's first step, its subgoal and subgoal images."""
+        key, box = int(step["key"]), self.inbox
+        if not (box.has(wire.OBSERVATION, key) and box.has(wire.ACTION, key)):
+            return False
+        if self.spec.hierarchical and step["t"] == 0:
+            return box.has(wire.SUBGOAL, key) and box.has(wire.SUBGOAL_IMAGES, key)
+        return True
+
     # -- assembly -----------------------------------------------------------------------------------
     def ready(self, step: dict) -> bool:
         key, prev, box = int(step["key"]), int(step["prev_key"]), self.inbox

@@ -34,7 +34,8 @@ class GroupAssembler(TransitionAssembler):
         super().__init__(namespace, learner.cfg, learner.agent.num_subgoals, self._acknowledge, node=node, log=log)
         self.episodes, self.graph_recorder = episodes, recorder
         self.acked_episodes = self.acked_steps = 0
-        self.heard = False  # no credit before the group's first env_step: its start would go unseen
+        self.first_step: dict | None = None  # the first env_step heard from the group
+        self.synced = False  # no credit before the learner holds a whole step's messages (see publish_credit)
         self.last_credit: tuple | None = None
         inputs = self.inputs()
         conns = recorder.add_group(namespace, list(inputs)) if recorder is not None else {}
@@ -54,7 +55,8 @@ class GroupAssembler(TransitionAssembler):
 
     def received(self, step: dict) -> None:
         super().received(step)
-        self.heard = True
+        if self.first_step is None:
+            self.first_step = step
 
     def stats(self) -> dict:
         """The assembler's counters, plus ``acked_episodes``/``acked_steps``: the episodes
@@ -63,8 +65,16 @@ class GroupAssembler(TransitionAssembler):
 
     def publish_credit(self, window: int, owed_ok: bool, eps: tuple[float, float], epoch: float,
                        force: bool = False) -> None:
-        """Publish ``learner_credit`` when the credit or the epsilons changed (or ``force``)."""
-        credit = self.env_steps_seen + window if owed_ok and self.heard else self.env_steps_seen
+        """Publish ``learner_credit`` when the credit or the epsilons changed (or ``force``).
+
+        No credit ahead before the learner holds the group's first heard step together with
+        the controllers' answers to it: a subscription matched late (discovery is per topic)
+        would miss them, and the env would run on while every later step waits for them.
+        Without credit the env re-publishes its step after ``action_timeout`` and the
+        controllers their answers, which the late subscription then gets."""
+        if not self.synced and self.first_step is not None:
+            self.synced = self.holds_answers(self.first_step)
+        credit = self.env_steps_seen + window if owed_ok and self.synced else self.env_steps_seen
         values = (credit, round(eps[0], 4), round(eps[1], 4))
         if values == self.last_credit and not force:
             return

@@ -16,7 +16,8 @@ has stepped, then stops every process and reports:
   action to the next step's publication (credit from the learner + stepping); all
   processes are on this machine, so ``time.time()`` is one clock;
 * memory over time: RSS of every node process (``/proc/<pid>/status``), the series
-  (downsampled) per node kind, and growth over the steady part; the replay is bounded in
+  (downsampled) per node kind, the peak per kind (goal: environment and critic <= 80 MiB,
+  ``light_nodes_pass``), and growth over the steady part; the replay is bounded in
   bytes (``--sub-replay-mib``, ``--meta-replay-mib``) and an estimate of when it is full
   is given, so flat memory can be judged fairly;
 * alignment: every transition the learner assembled compared with the environment's step
@@ -51,6 +52,8 @@ from hdrqn_ros.protocol.wire import group_namespaces
 from hdrqn_ros.supervisor import Supervisor
 
 KINDS = ("environment", "critic", "meta_controller", "sub_controller", "learner")
+LIGHT_NODE_GOAL_MIB = 80.0
+"""Goal for the environment and critic processes (numpy only, no torch): peak VmRSS <= this."""
 ALIGN_FIELDS = ("prev_key", "action", "extrinsic", "classical", "terminated", "truncated", "obs", "next_obs")
 FRAME_BYTES = 44 * 44 * 3
 """Sub-controller replay, per ``hdrqn_ros/agents/replay.py``: a step holds one frame plus
@@ -423,6 +426,8 @@ def run(args, base: Path) -> dict:
                 point[f"{kind}_max_mib"] = round(max(vals), 1)
         point["all_nodes_mib"] = round(sum(rss.values()), 1)
         series.append(point)
+    peak = {kind: round(max((v for n, s in by_name.items() if kind_of(n) == kind for _, v in s), default=0.0), 1)
+            for kind in KINDS}
     growth_out = {"window_s": [round(steady_t - t0, 1), round(t_end - t0, 1)],
                   "learner": growth(by_name.get("learner", []), steady_t, t_end),
                   "all_nodes": growth(total_series, steady_t, t_end)}
@@ -457,6 +462,9 @@ def run(args, base: Path) -> dict:
                    "note": "replay may grow up to its bound; the estimate counts the frames, fields and subgoal "
                            "images of the finished episodes the learner received (hdrqn_ros/agents/replay.py)"},
         "growth_steady": growth_out,
+        "peak_mib_by_kind": peak,
+        "light_nodes_goal_mib": LIGHT_NODE_GOAL_MIB,
+        "light_nodes_pass": all(peak.get(k, 0.0) <= LIGHT_NODE_GOAL_MIB for k in ("environment", "critic")),
         "series": series,
     }
 

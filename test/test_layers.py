@@ -8,6 +8,8 @@ protocol and recording) also import no ROS or DDS library.
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -131,3 +133,17 @@ def test_the_check_catches_an_upward_import(tmp_path):
 def test_unknown_module_is_named():
     with pytest.raises(KeyError, match="hdrqn_ros.elsewhere"):
         layer_of("hdrqn_ros.elsewhere")
+
+
+LIGHT_NODE_MODULES = ("hdrqn_ros.nodes.environment", "hdrqn_ros.nodes.critic")
+HEAVY_LIBRARIES = ("torch", "onnxruntime", "pydantic", "rosbags", "mcap", "zstandard", "apsw")
+"""What the environment and critic nodes (numpy only) never load: the learner's and the
+controllers' libraries; each would add to every group's resident memory."""
+
+
+@pytest.mark.parametrize("module", LIGHT_NODE_MODULES)
+def test_the_environment_and_critic_nodes_import_no_heavy_library(module):
+    probe = f"import sys, {module}; print(sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY_LIBRARIES!r})))"
+    run = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "[]", f"{module} loads {run.stdout.strip()}"

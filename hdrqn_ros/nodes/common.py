@@ -11,13 +11,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from hdrqn_ros.config import ConfigError
 from hdrqn_ros.deploy.specs import ALGO_SPECS, PolicyError
 from hdrqn_ros.envs.registration import GRID_IDS, MONTEZUMA_IDS, make_batch
 from hdrqn_ros.middleware import BackendError, Middleware, Node, ParameterError, RosArgsError, open_middleware
-from hdrqn_ros.nodes.nav import NavConfigError
-from hdrqn_ros.recording.bag import BagError
-from hdrqn_ros.training.checkpoint import CheckpointError
 
 ENV_DEFAULTS = {"algo": "hdrqn-v2", "env": "hdrqn/GridWorld-2Goals-v0", "view": "5", "seed": 0}
 """Parameters every training-graph node declares (the launch files set them once for all
@@ -99,17 +95,19 @@ def make_acting_network(node: Node, role: str, params: dict, default_epsilon: fl
     return TorchActingNetwork(node, role, params, default_epsilon, num_actions, num_subgoals)
 
 
-STARTUP_ERRORS = (NodeConfigError, NavConfigError, ConfigError, ParameterError, RosArgsError, BackendError,
-                  CheckpointError, PolicyError, BagError, FileNotFoundError)
-"""What a node reports as bad input: exit code 2."""
+STARTUP_ERRORS = (NodeConfigError, ParameterError, RosArgsError, BackendError, PolicyError, FileNotFoundError)
+"""What every node reports as bad input: exit code 2 (a node adds its own to :func:`run_node`,
+so that a node imports only what it uses: the environment and critic stay small)."""
 
 
-def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None) -> int:
+def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None,
+             input_errors: tuple[type[Exception], ...] = ()) -> int:
     """Open the middleware, build the node object, spin until it finishes, Ctrl-C or
     SIGTERM, then clean up (the object's ``close()`` first, then the middleware).
 
     SIGINT (Ctrl-C, what ``ros2 launch`` sends) and SIGTERM are a normal stop: exit code
-    the object's ``exit_code`` (0). 2 for bad parameters, arguments, checkpoints, policies or bags."""
+    the object's ``exit_code`` (0). 2 for bad parameters, arguments, checkpoints, policies or bags:
+    :data:`STARTUP_ERRORS` and the node's ``input_errors``."""
     argv = list(sys.argv if argv is None else argv)
     stopped = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stopped.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -121,7 +119,7 @@ def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None) 
         return getattr(built, "exit_code", 0)
     except KeyboardInterrupt:
         return 130
-    except STARTUP_ERRORS as exc:
+    except (*STARTUP_ERRORS, *input_errors) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     finally:

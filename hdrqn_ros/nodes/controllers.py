@@ -22,6 +22,7 @@ from hdrqn_ros.nodes import nav
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, make_acting_network, run_node
 from hdrqn_ros.protocol.follower import StepFollower, done
+from hdrqn_ros.training.checkpoint import CheckpointError
 
 _ONE = np.ones(1, bool)  # the rows mask of a node's policy: its one environment
 
@@ -264,9 +265,14 @@ class MetaControllerNode(_Controller):
         return replies
 
 
+CONTROLLER_INPUT_ERRORS = (CheckpointError, nav.NavConfigError)
+"""A controller's bad input besides :data:`~hdrqn_ros.nodes.common.STARTUP_ERRORS`: a
+checkpoint it cannot load, a navigation table it cannot use."""
+
+
 def main_sub(argv: list[str] | None = None) -> int:
-    return run_node(lambda mw: SubControllerNode(mw), argv)
+    return run_node(lambda mw: SubControllerNode(mw), argv, CONTROLLER_INPUT_ERRORS)
 
 
 def main_meta(argv: list[str] | None = None) -> int:
-    return run_node(lambda mw: MetaControllerNode(mw), argv)
+    return run_node(lambda mw: MetaControllerNode(mw), argv, CONTROLLER_INPUT_ERRORS)

@@ -24,13 +24,15 @@ from pathlib import Path
 import numpy as np
 
 from hdrqn_ros.agents.weights import encode_weights
-from hdrqn_ros.config import build_config, parse_set
+from hdrqn_ros.config import ConfigError, build_config, parse_set
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.group import GroupAssembler
+from hdrqn_ros.recording.bag import BagError
 from hdrqn_ros.recording.received import GraphRecorder, earlier_recordings
 from hdrqn_ros.recording.transitions import read_episodes
 from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, check_algo, env_kwargs, run_node
+from hdrqn_ros.training.checkpoint import CheckpointError
 from hdrqn_ros.training.learner import Learner
 
 PARAMETERS = {**ENV_DEFAULTS, "config": "", "overrides": [""], "episodes": 1000, "run_dir": "runs/graph",
@@ -234,7 +236,7 @@ class LearnerNode:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_node(lambda mw: LearnerNode(mw), argv)
+    return run_node(lambda mw: LearnerNode(mw), argv, (ConfigError, BagError, CheckpointError))
 
 
 if __name__ == "__main__":

@@ -243,7 +243,7 @@ class PlayerNode:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_node(lambda mw: PlayerNode(mw), argv)
+    return run_node(lambda mw: PlayerNode(mw), argv, (BagError,))
 
 
 if __name__ == "__main__":

@@ -4,7 +4,9 @@ import math
 import numpy as np
 import pytest
 import torch
+from torch import nn
 
+from hdrqn_ros.agents.lstm_sequence import lstm_sequence
 from hdrqn_ros.agents.networks import (
     ConvTrunk,
     DuelingHead,
@@ -204,7 +206,7 @@ def test_uint8_input_handling():
 
 @pytest.mark.parametrize("make, shape", [(lambda: make_image_qnet(6, 18), (44, 44, 6)),
                                          (lambda: make_state_qnet(256, 7), (256,))], ids=["sub", "v2-meta"])
-def test_unrolled_lstm_equals_torch_nn_lstm(make, shape):
+def test_lstm_sequence_equals_torch_nn_lstm(make, shape):
     """The hand-unrolled LSTM of ``act`` (batch 1, the acting path) and of ``forward`` are
     ``nn.LSTM`` itself: same Q-values, h and c at every one of 20 steps, from a zero and
     from a non-zero state (full-size networks: the sub-controller on Montezuma's 18
@@ -242,3 +244,35 @@ def test_unrolled_lstm_equals_torch_nn_lstm(make, shape):
         torch.testing.assert_close(q_fwd[0], ref_q, **tol)
         torch.testing.assert_close((h_fwd[0], c_fwd[0]), (hn[0, 0], cn[0, 0]), **tol)
         assert ref_q.abs().max() > 1e-3 and cn.abs().max() > 1e-2  # not a trivial comparison
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-10), (torch.float32, 1e-5)])
+@pytest.mark.parametrize("batch, steps", [(4, 9), (12, 3), (1, 1)])
+def test_lstm_sequence_gradients_equal_torch_nn_lstm(dtype, tol, batch, steps):
+    """:func:`lstm_sequence`'s hand-written backward gives ``nn.LSTM``'s gradients for the
+    inputs, the initial state and all four weights, with a loss on every output step and on
+    the final h and c (windows of the sub- and meta-controller, and one step)."""
+    torch.manual_seed(5)
+    lstm = nn.LSTM(256, 256, batch_first=True).to(dtype)
+    with torch.no_grad():
+        for p in lstm.parameters():
+            p.uniform_(-0.2, 0.2)
+    x = torch.randn(batch, steps, 256, dtype=dtype, requires_grad=True)
+    h0 = (torch.randn(batch, 256, dtype=dtype) * 0.5).requires_grad_()
+    c0 = (torch.randn(batch, 256, dtype=dtype) * 0.5).requires_grad_()
+    w_out, w_h, w_c = (torch.randn(batch, steps, 256, dtype=dtype), torch.randn(batch, 256, dtype=dtype),
+                       torch.randn(batch, 256, dtype=dtype))
+    params = [x, h0, c0, lstm.weight_ih_l0, lstm.weight_hh_l0, lstm.bias_ih_l0, lstm.bias_hh_l0]
+
+    def grads(run):
+        out, (h, c) = run()
+        loss = (out * w_out).sum() + (h * w_h).sum() + (c * w_c).sum()
+        return [out.detach(), h.detach(), c.detach(), *torch.autograd.grad(loss, params)]
+
+    ref = grads(lambda: (lambda o, s: (o, (s[0][0], s[1][0])))(*lstm(x, (h0[None], c0[None]))))
+    got = grads(lambda: lstm_sequence(x, (h0, c0), lstm.weight_ih_l0, lstm.weight_hh_l0,
+                                      lstm.bias_ih_l0 + lstm.bias_hh_l0))
+    names = ["out", "h", "c", "x", "h0", "c0", "w_ih", "w_hh", "b_ih", "b_hh"]
+    for name, a, b in zip(names, got, ref):
+        torch.testing.assert_close(a, b, atol=tol * max(1.0, b.abs().max().item()), rtol=0, msg=name)
+        assert b.abs().max() > 1e-3, name  # not a trivial comparison

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from hdrqn_ros.agents.lstm_sequence import lstm_sequence
 from hdrqn_ros.deploy.specs import STATE_SIZE
 from hdrqn_ros.envs.domain import OBS_SIZE
 
@@ -203,26 +204,23 @@ class RecurrentQNetwork(nn.Module):
     def forward(self, x: Tensor, state: LSTMState | None = None) -> tuple[Tensor, LSTMState]:
         """``x`` (B, T, ...) -> ``(q (B, T, n), (h, c))`` with h, c of (B, 256).
 
-        The LSTM is unrolled with plain torch ops (input projections of all T steps in
-        one matrix product, then T recurrent steps): for the short windows of the
-        thesis (n <= 16) this trains faster on a CPU than ``nn.LSTM``'s oneDNN kernels,
-        and it is the same function (``test_unrolled_lstm_equals_torch_nn_lstm`` in
-        test/test_networks.py compares both, and ``act``'s batch-1 path, with ``nn.LSTM``).
+        The LSTM runs as :func:`~hdrqn_ros.agents.lstm_sequence.lstm_sequence` (input
+        projections of all T steps in one matrix product, a hand-written backward): for the
+        short windows of the thesis (n <= 16) this trains faster on a CPU than ``nn.LSTM``'s
+        oneDNN kernels or autograd through the unrolled steps, and it is the same function
+        (``test_lstm_sequence_equals_torch_nn_lstm`` in test/test_networks.py compares
+        outputs and gradients with ``nn.LSTM``, and ``act``'s batch-1 path too).
         """
         x = _as_tensor(x)
         if x.dim() < 3:
             raise ValueError(f"forward expects (B, T, ...) inputs, got {tuple(x.shape)}")
         b, t = x.shape[:2]
         feats = self.trunk(x.reshape(b * t, *x.shape[2:]))
-        h, c = self._check_state(state, b, feats)
+        state = self._check_state(state, b, feats)
         lstm = self.lstm
-        gates_x = torch.addmm(lstm.bias_ih_l0 + lstm.bias_hh_l0, feats, lstm.weight_ih_l0.t()).view(b, t, -1)
-        w_hh = lstm.weight_hh_l0.t()
-        outs = []
-        for step in range(t):
-            h, c = self._gates_to_state(torch.addmm(gates_x[:, step], h, w_hh), c)
-            outs.append(h)
-        return self.head(torch.stack(outs, 1)), (h, c)
+        out, state = lstm_sequence(feats.view(b, t, -1), state, lstm.weight_ih_l0, lstm.weight_hh_l0,
+                                   lstm.bias_ih_l0 + lstm.bias_hh_l0)
+        return self.head(out), state
 
     @staticmethod
     def _gates_to_state(gates: Tensor, c: Tensor) -> LSTMState:

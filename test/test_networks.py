@@ -59,6 +59,19 @@ def test_conv_layer_shapes():
     assert all((m >= 0).all() for m in maps)  # ReLU after every conv
 
 
+def test_conv_trunk_is_the_four_valid_convolutions():
+    """The trunk computes its last conv as one matrix product: still Conv2d's function."""
+    torch.manual_seed(2)
+    trunk = ConvTrunk(6)
+    x = images(7, c=6, seed=3)
+    h = x.float().div(255).permute(0, 3, 1, 2)
+    for conv in trunk.convs:
+        h = torch.relu(nn.functional.conv2d(h, conv.weight, conv.bias, conv.stride))
+    with torch.no_grad():
+        torch.testing.assert_close(trunk(x), h.flatten(1), atol=1e-5, rtol=0)
+    assert h.abs().max() > 1e-2
+
+
 def test_mlp_and_head_shapes():
     mlp = MlpTrunk(256)
     x = torch.randn(7, 256)

@@ -99,9 +99,14 @@ class ConvTrunk(nn.Module):
         """Every conv layer's output, channels-first (for inspection and tests)."""
         x = self._prepare(x)
         outs = []
-        for conv in self.convs:
+        for conv in self.convs[:-1]:
             x = torch.relu(conv(x))
             outs.append(x)
+        # the last conv sees exactly one 3x3 window: it is one matrix product over the 288
+        # values of each input (same weights; ~4x faster forward and backward than oneDNN's conv here)
+        last = self.convs[-1]
+        x = torch.relu(torch.addmm(last.bias, x.flatten(1), last.weight.view(last.out_channels, -1).t()))
+        outs.append(x.view(*x.shape, 1, 1))
         return outs
 
     def _prepare(self, x: Tensor) -> Tensor:

@@ -61,3 +61,15 @@ def test_gradient_clipping_and_the_meta_discount_defaults():
 def test_the_montezuma_experiment_counts_phase_1_in_its_100000_episodes():
     cfg = build_config([config_dir() / "exp4_montezuma.yaml"])
     assert (cfg.episodes, cfg.sub_only_episodes) == (100_000, 20_000)
+
+
+def test_only_the_quickstart_leaves_the_thesis_update_ratio():
+    """The README's demo config trades the thesis settings for a short run; the shipped
+    experiment configs keep the default ratio (one update per 5 env steps)."""
+    for path in sorted(config_dir().glob("*.yaml")):
+        cfg = build_config([path])
+        if path.name == "quickstart.yaml":
+            assert (cfg.update_every, cfg.learning_starts, cfg.sub.lr) == (3, 2000, 3e-4)
+            assert (cfg.sub.epsilon.steps, cfg.meta.epsilon.steps) == (20_000, 30_000)
+        else:
+            assert cfg.update_every == 5, path.name

@@ -36,7 +36,7 @@ from hdrqn_ros.training.checkpoint import CheckpointError
 from hdrqn_ros.training.learner import Learner
 
 PARAMETERS = {**ENV_DEFAULTS, "config": "", "overrides": [""], "episodes": 1000, "run_dir": "runs/graph",
-              "groups": ["/"], "resume": False, "weights_every": 25, "credit_window": 20, "max_owed_updates": 2,
+              "groups": ["/"], "resume": False, "weights_every": 100, "credit_window": 20, "max_owed_updates": 8,
               "status_period": 1.0, "evaluate": True, "transition_log": "", "record": "", "record_split_mb": 256.0,
               "bags": [""], "offline_updates": 0}
 """``config``: a training config YAML (``hdrqn train --config``); ``overrides``:

@@ -57,6 +57,8 @@ class ControllerConfig(_Strict):
     replay_bytes: int | None = Field(None, ge=1, description="optional bound on replay memory")
     loss: Literal["mse", "huber"] = "mse"
     grad_clip: float | None = Field(10.0, gt=0.0)
+    window_history: bool = Field(False, description="windows begin up to n/2 steps before their first loss "
+                                 "step (inside the option), so every loss step has history (docs/training.md)")
     epsilon: EpsilonSchedule = EpsilonSchedule()
 
 

@@ -374,3 +374,27 @@ def test_sample_transitions_is_a_typed_batch_with_the_stored_values():
     flat = EpisodeReplay(4, seed=0)
     flat.add(_typed_episode(next_invalid=False))
     assert flat.sample_transitions(3, 2, lambda w: w.frames).next_invalid is None
+
+
+@pytest.mark.parametrize("n", [8, 2])
+def test_windows_with_history_give_every_loss_step_its_history(n):
+    """``history=True``: each loss step has ``n - n // 2`` steps of its own segment before it
+    in the window, or the window begins at the segment's start (the true zero state); no
+    window crosses a segment, and every step, each segment's first and last included,
+    reaches the loss."""
+    replay = EpisodeReplay(5, seed=1)
+    replay.add(make_episode(1, [3, 12, 1, 9]))
+    loss_len, counts = max(1, n // 2), np.zeros(25)
+    for _ in range(400):
+        b = replay.sample(8, n, history=True)
+        for i in range(8):
+            steps, segs = b.fields["step"][i], b.fields["segment"][i]
+            valid, mask = b.valid[i], b.loss_mask[i]
+            assert len(set(segs[valid])) == 1
+            seg_start = int(replay._episodes[0].segment_starts[segs[0]])
+            if steps[0] == seg_start:
+                assert mask[valid].all()
+            else:
+                assert not mask[: n - loss_len].any() and mask[n - loss_len:][valid[n - loss_len:]].all()
+            counts[steps[mask]] += 1
+    assert counts.min() > 0, counts

@@ -91,7 +91,8 @@ class Controller:
         Loss only on each window's ``mask`` steps (the last n/2). Returns the loss.
         Raises :class:`TrainingDiverged` when the loss is not finite.
         """
-        batch = self.replay.sample_transitions(self.cfg.batch_size, self.seq_len, self.build_input, self.device)
+        batch = self.replay.sample_transitions(self.cfg.batch_size, self.seq_len, self.build_input, self.device,
+                                               history=self.cfg.window_history)
 
         # ALGO LOGIC: the Double DQN target on a window of n steps (thesis Algorithms 3, 4)
         #   y_t = r_t + discount_t * (1 - terminal_t) * Q_target(s_{t+1}, argmax_a Q(s_{t+1}, a))

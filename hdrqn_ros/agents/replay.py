@@ -305,11 +305,16 @@ class EpisodeReplay:
         seq_len: int,
         rng: np.random.Generator | None = None,
         loss_len: int | None = None,
+        history: bool = False,
     ) -> SequenceBatch:
         """Sample ``batch_size`` windows of up to ``seq_len`` steps (see module docstring).
 
         ``loss_len`` (default ``max(1, seq_len // 2)``): how many of the last valid steps
         of each window carry the loss (all of them when the window is shorter).
+        ``history``: draw the first loss step uniformly instead and begin the window up to
+        ``seq_len - loss_len`` steps before it, inside its segment, so that every loss step
+        has that much history where the segment has it (a window that then begins at its
+        segment's start still puts the loss on all its steps).
         ``rng`` defaults to the replay's own generator (seeded by ``seed``).
         """
         if len(self._episodes) == 0:
@@ -347,6 +352,9 @@ class EpisodeReplay:
             # option included, reaches the loss equally often.
             start = int(rng.integers(t_total))
             segment = int(np.searchsorted(ep.segment_starts, start, side="right")) - 1
+            first_loss = start
+            if history:  # ``start`` is the first loss step: begin up to n - loss_len steps earlier
+                start = max(int(ep.segment_starts[segment]), start - (n - int(loss_len)))
             seg_end = int(ep.segment_starts[segment + 1]) if segment + 1 < ep.num_segments else t_total
             length = min(n, seg_end - start)
             from_segment_start = start == int(ep.segment_starts[segment])
@@ -359,7 +367,11 @@ class EpisodeReplay:
             valid[row, :length] = True
             # A window that begins where its segment begins starts from the true (zero) LSTM
             # state, so all its steps carry the loss; otherwise only the last loss_len do.
-            loss_mask[row, 0 if from_segment_start else max(0, length - int(loss_len)) : length] = True
+            if from_segment_start:
+                loss_from = 0
+            else:
+                loss_from = first_loss - start if history else max(0, length - int(loss_len))
+            loss_mask[row, loss_from:length] = True
 
         return SequenceBatch(frames, fields, seg_data, valid, loss_mask, ep_idx, starts)
 
@@ -371,9 +383,10 @@ class EpisodeReplay:
         device: torch.device | str = "cpu",
         rng: np.random.Generator | None = None,
         loss_len: int | None = None,
+        history: bool = False,
     ) -> ReplaySamples:
         """:meth:`sample` windows, as typed :class:`ReplaySamples` on ``device``; the network
         input ``obs`` is ``build_input(window)`` (e.g. each frame stacked with its option's
         subgoal image)."""
-        batch = self.sample(batch_size, seq_len, rng=rng, loss_len=loss_len)
+        batch = self.sample(batch_size, seq_len, rng=rng, loss_len=loss_len, history=history)
         return batch.samples(build_input(batch), device)

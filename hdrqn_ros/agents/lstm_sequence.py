@@ -46,21 +46,25 @@ def _forward(gates_x: Tensor, h: Tensor, c: Tensor, w_hh: Tensor, keep: bool):
     return hs, cs, (acts if keep else None), (tanh_c if keep else None)
 
 
+def _input_gates(x: Tensor, w_ih: Tensor, bias: Tensor) -> tuple[Tensor, Tensor]:
+    """``x`` (B, T, F) -> (its rows time-major, (T * B, F); their input projections plus
+    ``bias``, (T, B, 4H)): one matrix product for the whole window."""
+    b, t, features = x.shape
+    rows = x.transpose(0, 1).reshape(t * b, features)
+    return rows, torch.addmm(bias, rows, w_ih.t()).view(t, b, -1)
+
+
 class _LSTMSequence(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: Tensor, h0: Tensor, c0: Tensor, w_ih: Tensor, w_hh: Tensor, bias: Tensor):
-        steps_first = x.transpose(0, 1)  # (T, B, F)
-        t, b, features = steps_first.shape
-        gates_x = torch.addmm(bias, steps_first.reshape(t * b, features), w_ih.t()).view(t, b, -1)
-        keep = any(ctx.needs_input_grad)
-        hs, cs, acts, tanh_c = _forward(gates_x, h0, c0, w_hh, keep)
-        if keep:
-            ctx.save_for_backward(steps_first, hs, cs, acts, tanh_c, w_ih, w_hh)
+        rows, gates_x = _input_gates(x, w_ih, bias)
+        hs, cs, acts, tanh_c = _forward(gates_x, h0, c0, w_hh, keep=True)
+        ctx.save_for_backward(rows, hs, cs, acts, tanh_c, w_ih, w_hh)
         return hs[1:].transpose(0, 1).contiguous(), hs[-1].clone(), cs[-1].clone()
 
     @staticmethod
     def backward(ctx, grad_out: Tensor, grad_h: Tensor, grad_c: Tensor):
-        x, hs, cs, acts, tanh_c, w_ih, w_hh = ctx.saved_tensors
+        rows, hs, cs, acts, tanh_c, w_ih, w_hh = ctx.saved_tensors
         steps, batch, four_h = acts.shape
         hidden = four_h // 4
         i, f, g, o = acts.split(hidden, 2)
@@ -83,7 +87,7 @@ class _LSTMSequence(torch.autograd.Function):
             dh = torch.addmm(grad_steps[t - 1], d, w_hh) if t else d @ w_hh
         flat = dgates.view(steps * batch, four_h)
         grad_x = (flat @ w_ih).view(steps, batch, -1).transpose(0, 1) if ctx.needs_input_grad[0] else None
-        grad_w_ih = flat.t() @ x.reshape(steps * batch, -1)
+        grad_w_ih = flat.t() @ rows
         grad_w_hh = flat.t() @ hs[:-1].reshape(steps * batch, hidden)
         return grad_x, dh, dc, grad_w_ih, grad_w_hh, flat.sum(0)
 
@@ -94,10 +98,7 @@ def lstm_sequence(x: Tensor, state: tuple[Tensor, Tensor], w_ih: Tensor, w_hh: T
     ``bias`` (4H,) = ``bias_ih + bias_hh`` -> (outputs (B, T, H), (h_T, c_T))."""
     h, c = state
     if not torch.is_grad_enabled() or not any(v.requires_grad for v in (x, h, c, w_ih, w_hh, bias)):
-        steps_first = x.transpose(0, 1)
-        t, b, features = steps_first.shape
-        gates_x = torch.addmm(bias, steps_first.reshape(t * b, features), w_ih.t()).view(t, b, -1)
-        hs, cs, _, _ = _forward(gates_x, h, c, w_hh, keep=False)
+        hs, cs, _, _ = _forward(_input_gates(x, w_ih, bias)[1], h, c, w_hh, keep=False)
         return hs[1:].transpose(0, 1), (hs[-1], cs[-1])
     out, h, c = _LSTMSequence.apply(x, h, c, w_ih, w_hh, bias)
     return out, (h, c)

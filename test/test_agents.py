@@ -303,7 +303,7 @@ LR_GAMMA = {  # algo: ((sub or flat lr, gamma), (meta lr, meta gamma) or None); 
 def test_every_learning_rate_and_discount_is_pinned(tmp_path):
     import logging
 
-    from hdrqn_ros.protocol.assembly import TransitionAssembler
+    from hdrqn_ros.protocol.assembly import EnvAssembler, TransitionAssembler
     from hdrqn_ros.training.trainer import Trainer
 
     assert set(LR_GAMMA) == set(ALGO_SPECS)
@@ -318,8 +318,8 @@ def test_every_learning_rate_and_discount_is_pinned(tmp_path):
                 assert [g["lr"] for g in ctrl.optimizer.param_groups] == [want[0]], (algo, ctrl.name)
         # the discounts stored with each transition: in-process trainer and node graph learner
         assert trainer.builder.sub_gamma == np.float32(sub[1]), algo
-        _, _, sub_gamma, meta_gamma, _ = TransitionAssembler("/", cfg, 2, print,
-                                                             logger=logging.getLogger("test")).builder_args
+        group = TransitionAssembler("/", cfg, 2, print, logger=logging.getLogger("test"))
+        _, _, sub_gamma, meta_gamma, _ = EnvAssembler(group, 0).builder_args
         assert sub_gamma == sub[1], algo
         if meta is not None:
             assert trainer.builder.meta_gamma == meta_gamma == meta[1], algo

@@ -398,7 +398,7 @@ def test_the_learner_holds_a_first_step_only_with_the_controllers_answers():
     handlers, first, held = asm.inputs(), None, []
     for topic, msg in group_stream(VALID_EPISODES)[:6]:  # env_step, observation, critic, action, subgoal, images
         handlers[topic][1](msg)
-        first = first or wire.read_step(msg)
+        first = first or wire.read_steps(msg)
         held.append(asm.holds_answers(first))
     assert held == [False, False, False, False, False, True]
 

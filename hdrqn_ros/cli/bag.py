@@ -118,8 +118,9 @@ def cmd_bag(args) -> int:
             stats = ("-" if not group_stats["episodes"] else
                      f"return {group_stats['mean_return']:7.3f}  success {group_stats['success_rate']:.2f}  "
                      f"steps {group_stats['mean_steps']:6.1f}")
+            envs = f", {group_stats['num_envs']} envs" if group_stats["num_envs"] > 1 else ""
             print(f"  {group:{width}s}  {group_stats['episodes']:6d}  {stats}  "
-                  f"({group_stats['incomplete']} incomplete)")
+                  f"({group_stats['incomplete']} incomplete{envs})")
         total = sum(e["episodes"] for e in groups.values())
         if len(groups) > 1 and total:
             ret = sum(e["mean_return"] * e["episodes"] for e in groups.values() if e["episodes"]) / total

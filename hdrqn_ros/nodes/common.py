@@ -13,6 +13,7 @@ import numpy as np
 
 from hdrqn_ros.deploy.specs import ALGO_SPECS, PolicyError
 from hdrqn_ros.envs.registration import GRID_IDS, MONTEZUMA_IDS, make_batch
+from hdrqn_ros.protocol.wire import MAX_ENVS
 from hdrqn_ros.middleware import BackendError, Middleware, Node, ParameterError, RosArgsError, open_middleware
 
 ENV_DEFAULTS = {"algo": "hdrqn-v2", "env": "hdrqn/GridWorld-2Goals-v0", "view": "5", "seed": 0}
@@ -35,6 +36,13 @@ def env_kwargs(env_id: str, view: str) -> dict:
     if not view.isdigit():
         raise NodeConfigError(f"view must be an odd number of cells or 'full', got {view!r}")
     return {"view": int(view)}
+
+
+def check_num_envs(num_envs: int) -> int:
+    """The ``num_envs`` parameter (environments one environment node steps as a batch), checked."""
+    if not 1 <= num_envs <= MAX_ENVS:
+        raise NodeConfigError(f"num_envs must be in 1..{MAX_ENVS}, got {num_envs}")
+    return num_envs
 
 
 def check_algo(algo: str) -> None:

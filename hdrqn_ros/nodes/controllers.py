@@ -9,6 +9,7 @@ observation alone); for hDRQNv2 it also publishes its LSTM state (``sub_state``)
 Both explore with the learner's epsilons (or a fixed ``epsilon`` parameter) and take new
 weights from the learner's latched weights topics, or act from an exported ONNX policy
 (``policy``: numpy and onnxruntime only, torch is never imported, frozen weights).
+With ``num_envs`` > 1 both act on the environment node's whole batch in one forward pass.
 """
 from __future__ import annotations
 
@@ -20,18 +21,20 @@ from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
 from hdrqn_ros.nodes import nav
 from hdrqn_ros.protocol import wire
-from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, make_acting_network, run_node
-from hdrqn_ros.protocol.follower import StepFollower, done
+from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, check_num_envs, make_acting_network, run_node
+from hdrqn_ros.protocol.follower import StepFollower, all_done, done
 from hdrqn_ros.training.checkpoint import CheckpointError
 
-_ONE = np.ones(1, bool)  # the rows mask of a node's policy: its one environment
+_ONE = np.ones(1, bool)  # the rows mask of a free-running (costmap) sub-controller's one environment
 
-CONTROLLER_PARAMETERS = {**ENV_DEFAULTS, "epsilon": -1.0, "checkpoint": "", "policy": "", "meta_state": "c"}
+CONTROLLER_PARAMETERS = {**ENV_DEFAULTS, "epsilon": -1.0, "checkpoint": "", "policy": "", "meta_state": "c",
+                         "num_envs": 1}
 """``epsilon`` < 0: explore with the learner's schedule (1.0 until it is heard from);
 ``checkpoint``: initial weights (``RUN_DIR/checkpoints/last.pt``); ``policy``: instead, an
 exported policy directory (``hdrqn export``; torch-free, frozen; its algo, sizes and
 hDRQNv2 ``meta_state`` must be the node's); ``meta_state``: which LSTM state hDRQNv2's
-meta-controller reads, ``c`` or ``h``. The Nav2 adapters add
+meta-controller reads, ``c`` or ``h``; ``num_envs``: the environment node's batch size
+(the same on every node of a group). The Nav2 adapters add
 :data:`~hdrqn_ros.nodes.nav.META_PARAMETERS` / :data:`~hdrqn_ros.nodes.nav.SUB_PARAMETERS`."""
 
 
@@ -42,15 +45,17 @@ class _Controller(StepFollower):
 
     def __init__(self, mw: Middleware, name: str):
         node = mw.create_node(name)
-        super().__init__(node)
         params = self.params = node.declare_parameters({**CONTROLLER_PARAMETERS, **self.nav_parameters})
+        n = check_num_envs(params["num_envs"])
+        super().__init__(node, num_envs=n)
         if params["meta_state"] not in ("c", "h"):
             raise NodeConfigError(f"meta_state must be 'c' or 'h', got {params['meta_state']!r}")
         self.net = make_acting_network(node, self.role, params, default_epsilon=1.0)
         self.spec = ALGO_SPECS[params["algo"]]
-        # this node's level of the policy, for its one environment
+        # this node's level of the policy, for the environments of the batch
         sub, meta = (self.net, None) if self.role == "sub" else (None, self.net)
-        self.policy = HierarchicalPolicy(1, sub, meta, self.spec.meta_input, params["meta_state"])
+        self.policy = HierarchicalPolicy(n, sub, meta, self.spec.meta_input, params["meta_state"])
+        self.every_env = np.ones(n, bool)
         if params.get("observation_source", "topic") == "topic":  # lock-step with the environment node
             node.create_subscription(wire.FLOATS, wire.ENV_STEP, self.on_env_step, wire.STEP_QOS)
         node.create_subscription(wire.FLOATS, wire.CREDIT, self._on_credit, LATCHED_QOS)
@@ -61,18 +66,34 @@ class _Controller(StepFollower):
             self.net.on_credit(credit)
 
     def _on_image(self, topic: str, msg, height: int = OBS_SIZE) -> None:
-        got = self.decode(topic, lambda: wire.read_image(msg, height, OBS_SIZE))
+        """(N, height, 44, 3): the environments' images, stacked top to bottom on the wire."""
+        got = self.decode(topic, lambda: wire.read_images(msg, height, OBS_SIZE, self.num_envs))
         if got is not None:
             self.put(topic, got[0], got[1])
 
-    def option_starts(self, key: int) -> bool | None:
-        """Whether the critic ended the option at ``key`` (a new one starts); ``None``: not heard yet."""
-        critic = self.inbox.get(wire.CRITIC, key)
-        return None if critic is None else bool(critic["option_done"])
+    def _on_critic(self, msg) -> None:
+        def read() -> list[dict]:
+            verdicts = wire.read_records(msg, wire.CRITIC_FIELDS)
+            if len(verdicts) != self.num_envs:
+                raise wire.ProtocolError(f"critic holds {len(verdicts)} environment(s)' records, "
+                                         f"expected {self.num_envs}")
+            return verdicts
+
+        verdicts = self.decode(wire.CRITIC, read)
+        if verdicts is not None:
+            self.put(wire.CRITIC, verdicts[0]["key"], verdicts)
+
+    def option_starts(self, rows: list[dict]) -> np.ndarray | None:
+        """(N,) bool: where the critic ended the option at this step and the episode goes on
+        (a new option starts); ``None``: the critic not heard yet."""
+        critic = self.inbox.get(wire.CRITIC, int(rows[0]["key"]))
+        if critic is None:
+            return None
+        return np.array([bool(c["option_done"]) and not done(row) for c, row in zip(critic, rows)])
 
     def reset(self) -> None:
         super().reset()
-        self.policy.start_episodes(_ONE)
+        self.policy.start_episodes(self.every_env)
 
 
 class SubControllerNode(_Controller):
@@ -86,10 +107,13 @@ class SubControllerNode(_Controller):
     def __init__(self, mw: Middleware):
         super().__init__(mw, "sub_controller")
         node, params = self.node, self.params
-        self.subgoal_image = np.zeros((OBS_SIZE, OBS_SIZE, 3), np.uint8)
+        self.subgoal_image = np.zeros((self.num_envs, OBS_SIZE, OBS_SIZE, 3), np.uint8)  # each option's
         self.pub_action = node.create_publisher(wire.INTS, wire.ACTION, wire.STEP_QOS)
         self.pub_state = node.create_publisher(wire.FLOATS, wire.SUB_STATE, wire.STEP_QOS) \
             if self.spec.meta_input == "state" else None
+        if self.num_envs != 1 and (params["action_table"] or params["subgoal_table"]):
+            raise NodeConfigError(f"action_table and subgoal_table drive one robot: num_envs must be 1, "
+                                  f"got {self.num_envs}")
         self.actions = nav.ActionTable.load(params["action_table"], self.net.num_actions) \
             if params["action_table"] else None
         self.pub_cmd = node.create_publisher(self.actions.type_name, params["cmd_vel_topic"]) if self.actions else None
@@ -99,6 +123,9 @@ class SubControllerNode(_Controller):
         self.costmaps = 0
         source = params["observation_source"]
         if source == "costmap":
+            if self.num_envs != 1:
+                raise NodeConfigError(f"observation_source costmap acts for one robot: num_envs must be 1, "
+                                      f"got {self.num_envs}")
             if not params["view"].isdigit():
                 raise NodeConfigError(f"observation_source costmap needs a numeric view, got {params['view']!r}")
             node.create_subscription(nav.OCCUPANCY_GRID, params["costmap_topic"], self._on_costmap, LATCHED_QOS)
@@ -116,13 +143,13 @@ class SubControllerNode(_Controller):
                     wire.SUBGOAL_IMAGES, m, OBS_SIZE * self.net.num_subgoals), wire.STEP_QOS)
 
     def _on_subgoal(self, msg) -> None:
-        choice = self.decode(wire.SUBGOAL, lambda: wire.read_record(msg, wire.SUBGOAL_FIELDS, np.int64))
-        if choice is not None and self.decode(wire.SUBGOAL, lambda: wire.check_index(
-                choice["subgoal"], self.net.num_subgoals, "subgoal")) is not None:
-            if self.params["observation_source"] == "costmap":
-                self.free_subgoal = int(choice["subgoal"])
-            else:
-                self.put(wire.SUBGOAL, choice["key"], choice)
+        chosen = self.decode(wire.SUBGOAL, lambda: wire.read_subgoals(msg, self.net.num_subgoals, self.num_envs))
+        if chosen is None:
+            return
+        if self.params["observation_source"] == "costmap":
+            self.free_subgoal = int(chosen[1][0])
+        else:
+            self.put(wire.SUBGOAL, *chosen)
 
     def _on_costmap(self, msg) -> None:
         """Free-running: act on each costmap update (no environment node, no lock-step)."""
@@ -139,59 +166,60 @@ class SubControllerNode(_Controller):
             if self.free_subgoal != self.policy.subgoal[0]:  # a new option
                 self.policy.start_options(_ONE, np.array([self.free_subgoal]))
             if self.goals is not None:
-                self.subgoal_image = nav.costmap_to_observation(
+                self.subgoal_image[0] = nav.costmap_to_observation(
                     msg, robot_xy=self.goals.poses[self.free_subgoal][:2], view_cells=view)
-            x = stack_subgoal(obs, self.subgoal_image)
+            x = stack_subgoal(obs, self.subgoal_image[0])
         action = int(self.policy.act(x[None], self.net.epsilon, self.net.rng)[0])
         self.pub_action.publish(wire.make_record(self.node, wire.INTS, wire.ACTION_FIELDS, [key, action]))
         if self.pub_cmd is not None:
             self.pub_cmd.publish(self.actions.twist_msg(self.node, action, key))
 
-    def _on_critic(self, msg) -> None:
-        verdict = self.decode(wire.CRITIC, lambda: wire.read_record(msg, wire.CRITIC_FIELDS))
-        if verdict is not None:
-            self.put(wire.CRITIC, verdict["key"], verdict)
-
-    def received(self, step: dict) -> None:
+    def received(self, rows: list[dict]) -> None:
         """hDRQNv2: where an option may end, hand the meta-controller our LSTM state after the
         previous action (its input), before the critic has even decided."""
-        may_end = step["t"] > 0 and (step["decision_point"] or done(step))
-        if self.pub_state is not None and may_end and int(step["prev_key"]) == self.acted_key:
-            self.pub_state.publish(wire.make_state(self.node, self.acted_key, self.policy.sub_end_state()[0]))
+        may_end = any(row["t"] > 0 and (row["decision_point"] or done(row)) and int(row["prev_key"]) == self.acted_key
+                      for row in rows)
+        if self.pub_state is not None and may_end:
+            self.pub_state.publish(wire.make_states(self.node, self.acted_key, self.policy.sub_end_state()))
 
-    def ready(self, step: dict) -> bool:
-        key = int(step["key"])
-        if done(step):
+    def ready(self, rows: list[dict]) -> bool:
+        key = int(rows[0]["key"])
+        if all_done(rows):
             return True
         if not self.inbox.has(wire.OBSERVATION, key):
             return False
         if not self.spec.hierarchical:
             return True
-        starts = self.option_starts(key)
-        if not starts:
-            return starts is not None
-        return self.inbox.has(wire.SUBGOAL, key) and self.inbox.has(wire.SUBGOAL_IMAGES, key)
+        starts = self.option_starts(rows)
+        if starts is None:
+            return False
+        return not starts.any() or (self.inbox.has(wire.SUBGOAL, key) and self.inbox.has(wire.SUBGOAL_IMAGES, key))
 
-    def process(self, step: dict) -> list:
-        if done(step):
+    def process(self, rows: list[dict]) -> list:
+        """One action per environment (-1 where its episode ended at this step); nothing
+        when every episode ended."""
+        if all_done(rows):
             return []
-        key = int(step["key"])
+        key = int(rows[0]["key"])
         obs = self.inbox.get(wire.OBSERVATION, key)
-        if step["t"] == 0:
-            self.policy.start_episodes(_ONE)
+        self.policy.start_episodes(np.array([row["t"] == 0 for row in rows]))
         x = obs
         if self.spec.hierarchical:
-            if self.option_starts(key):
-                subgoal = int(self.inbox.get(wire.SUBGOAL, key)["subgoal"])
-                self.policy.start_options(_ONE, np.array([subgoal]))
-                self.subgoal_image = self.inbox.get(wire.SUBGOAL_IMAGES, key)[subgoal * OBS_SIZE:
-                                                                              (subgoal + 1) * OBS_SIZE]
+            starts = self.option_starts(rows)
+            if starts.any():
+                chosen, images = self.inbox.get(wire.SUBGOAL, key), self.inbox.get(wire.SUBGOAL_IMAGES, key)
+                self.policy.start_options(starts, chosen[starts])
+                for i in np.flatnonzero(starts):
+                    g = int(chosen[i])
+                    self.subgoal_image[i] = images[i, g * OBS_SIZE:(g + 1) * OBS_SIZE]
             x = stack_subgoal(obs, self.subgoal_image)
-        action = int(self.policy.act(x[None], self.net.epsilon, self.net.rng)[0])
+        actions = self.policy.act(x, self.net.epsilon, self.net.rng)
+        actions[[done(row) for row in rows]] = -1
         self.acted_key = key
-        replies = [(self.pub_action, wire.make_record(self.node, wire.INTS, wire.ACTION_FIELDS, [key, action]))]
+        replies = [(self.pub_action, wire.make_records(self.node, wire.INTS, wire.ACTION_FIELDS,
+                                                       [[key, a] for a in actions]))]
         if self.pub_cmd is not None:
-            replies.append((self.pub_cmd, self.actions.twist_msg(self.node, action, key)))
+            replies.append((self.pub_cmd, self.actions.twist_msg(self.node, int(actions[0]), key)))
         return replies
 
     def close(self) -> None:
@@ -212,6 +240,8 @@ class MetaControllerNode(_Controller):
         if not self.spec.hierarchical:
             raise NodeConfigError(f"{self.params['algo']} is a flat agent: it has no meta-controller")
         node, params = self.node, self.params
+        if params["subgoal_table"] and self.num_envs != 1:
+            raise NodeConfigError(f"subgoal_table drives one robot: num_envs must be 1, got {self.num_envs}")
         self.goals = nav.SubgoalTable.load(params["subgoal_table"], self.net.num_subgoals) \
             if params["subgoal_table"] else None
         self.pub_goal = node.create_publisher(nav.POSE_STAMPED, params["goal_pose_topic"]) if self.goals else None
@@ -223,45 +253,54 @@ class MetaControllerNode(_Controller):
             node.create_subscription(wire.IMAGE, wire.OBSERVATION, lambda m: self._on_image(wire.OBSERVATION, m),
                                      wire.STEP_QOS)
 
-    def _on_critic(self, msg) -> None:
-        verdict = self.decode(wire.CRITIC, lambda: wire.read_record(msg, wire.CRITIC_FIELDS))
-        if verdict is not None:
-            self.put(wire.CRITIC, verdict["key"], verdict)
-
     def _on_sub_state(self, msg) -> None:
-        got = self.decode(wire.SUB_STATE, lambda: wire.read_state(msg, STATE_SIZE))
+        def read() -> tuple[int, np.ndarray]:
+            key, states = wire.read_states(msg, STATE_SIZE)
+            if len(states) != self.num_envs:
+                raise wire.ProtocolError(f"sub_state holds {len(states)} environment(s)' states, "
+                                         f"expected {self.num_envs}")
+            return key, states
+
+        got = self.decode(wire.SUB_STATE, read)
         if got is not None:
             self.put(wire.SUB_STATE, *got)
 
-    def ready(self, step: dict) -> bool:
-        key, prev = int(step["key"]), int(step["prev_key"])
-        if done(step):
+    def ready(self, rows: list[dict]) -> bool:
+        if all_done(rows):
             return True
-        starts = self.option_starts(key)
-        if not starts:
-            return starts is not None
+        starts = self.option_starts(rows)
+        if starts is None:
+            return False
+        if not starts.any():
+            return True
         if self.spec.meta_input == "image":
-            return self.inbox.has(wire.OBSERVATION, key)
-        return step["t"] == 0 or self.inbox.has(wire.SUB_STATE, prev)
+            return self.inbox.has(wire.OBSERVATION, int(rows[0]["key"]))
+        ended = [int(row["prev_key"]) for row, start in zip(rows, starts) if start and row["t"] > 0]
+        return not ended or self.inbox.has(wire.SUB_STATE, ended[0])
 
-    def process(self, step: dict) -> list:
-        """A ``subgoal`` (and ``goal_pose``) when an option starts; nothing on other steps."""
-        key = int(step["key"])
-        if done(step) or not self.option_starts(key):
+    def process(self, rows: list[dict]) -> list:
+        """A ``subgoal`` (and ``goal_pose``) where options start; nothing on other steps."""
+        key = int(rows[0]["key"])
+        starts = None if all_done(rows) else self.option_starts(rows)
+        if starts is None or not starts.any():
             return []
         state_input = self.spec.meta_input == "state"
-        if step["t"] == 0:
-            self.policy.start_episodes(_ONE)
-        else:  # the previous option ended: where it stands, and (hDRQNv2) the sub-controller's state
-            sub_end = self.inbox.get(wire.SUB_STATE, int(step["prev_key"]))[None] if state_input else None
-            self.policy.end_options(_ONE, np.array([int(step["at_subgoal"])]), sub_end)
-        obs = None if state_input else self.inbox.get(wire.OBSERVATION, key)[None]
-        chosen, _ = self.policy.choose_subgoals(_ONE, obs, self.net.epsilon, self.net.rng)
-        subgoal = int(chosen[0])
-        replies = [(self.pub_subgoal, wire.make_record(self.node, wire.INTS, wire.SUBGOAL_FIELDS, [key, subgoal, 1]))]
+        fresh = starts & np.array([row["t"] == 0 for row in rows])
+        ended = starts & ~fresh
+        self.policy.start_episodes(fresh)
+        if ended.any():  # the previous options ended: where they stand, and (hDRQNv2) the sub-controller's state
+            prev = int(rows[int(np.flatnonzero(ended)[0])]["prev_key"])
+            sub_end = self.inbox.get(wire.SUB_STATE, prev)[ended] if state_input else None
+            self.policy.end_options(ended, np.array([int(row["at_subgoal"]) for row in rows]), sub_end)
+        obs = None if state_input else self.inbox.get(wire.OBSERVATION, key)
+        chosen, _ = self.policy.choose_subgoals(starts, obs, self.net.epsilon, self.net.rng)
+        subgoals = np.full(self.num_envs, -1, np.int64)
+        subgoals[starts] = chosen
+        replies = [(self.pub_subgoal, wire.make_records(self.node, wire.INTS, wire.SUBGOAL_FIELDS,
+                                                        [[key, g, int(s)] for g, s in zip(subgoals, starts)]))]
         if self.pub_goal is not None:
             stamp = wire.Stamp.of(key)
-            replies.append((self.pub_goal, self.goals.pose_msg(self.node, subgoal, stamp.sec, stamp.nanosec)))
+            replies.append((self.pub_goal, self.goals.pose_msg(self.node, int(subgoals[0]), stamp.sec, stamp.nanosec)))
         return replies
 
 

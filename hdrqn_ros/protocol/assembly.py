@@ -4,7 +4,8 @@
 node's subscriptions or from a bag), joins them by step key into the same
 :class:`~hdrqn_ros.agents.policy.StepRecord` rows the in-process rollout produces, and
 feeds the same :class:`~hdrqn_ros.training.episodes.EpisodeBuilder`; ``on_episode`` gets
-each finished episode. It starts using a group's data at an episode boundary.
+each finished episode. A group may step a batch of environments: each one's records are
+assembled on their own (:class:`EnvAssembler`), from an episode boundary on.
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ from hdrqn_ros.config import TrainConfig, batch_class
 from hdrqn_ros.critic import sub_controller_terminal
 from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.protocol import wire
-from hdrqn_ros.protocol.follower import StepFollower, done
+from hdrqn_ros.protocol.follower import Decoder, StepFollower, done
 from hdrqn_ros.training.episodes import EpisodeBuilder, FinishedEpisode
 
 
@@ -32,27 +33,23 @@ def _critic_of(step: dict, critic: dict) -> dict:
     return critic
 
 
-class TransitionAssembler(StepFollower):
-    """One environment group's messages -> :class:`StepRecord` rows -> replay episodes."""
+class TransitionAssembler(Decoder):
+    """One environment group's messages -> :class:`StepRecord` rows -> replay episodes.
 
-    skip_stale = False  # a transition needs every step of its episode
+    A group's environment node steps one environment or a batch of them (``num_envs``):
+    the number comes with the messages (their ``env`` dimension, or the stacked images'
+    height), and each environment's records go to its own :class:`EnvAssembler`."""
 
     def __init__(self, namespace: str, cfg: TrainConfig, num_subgoals: int,
                  on_episode: Callable[[FinishedEpisode], None], node=None, logger=None, log=None):
-        super().__init__(node, logger=logger)
+        self.node = node
+        self.logger = logger if logger is not None else node.logger
         self.ns = namespace.rstrip("/")
-        self.on_episode = on_episode
+        self.cfg, self.num_subgoals, self.on_episode, self.log = cfg, num_subgoals, on_episode, log
         self.spec = ALGO_SPECS[cfg.algo]
-        self.num_subgoals = num_subgoals
         self.num_actions = batch_class(cfg.env).num_actions
-        self.builder_args = (1, self.spec.hierarchical, cfg.controller("sub").gamma, cfg.meta.gamma,
-                             cfg.smdp_discount)
-        self.env_steps_seen = 0  # the env's own step count, from its latest env_step
-        self.transitions = 0
-        self.skipped = 0  # steps seen while waiting for an episode boundary
-        self.lost_episodes = 0  # episodes cut short by missing messages or restarts
-        self.open = False
-        self.log = log
+        self.envs: list[EnvAssembler] = []  # one per environment, made when the first message says how many
+        self.env_steps_seen = 0  # the env node's own step count, from its latest env_step
 
     def topic(self, name: str) -> str:
         return f"{self.ns}/{name}"
@@ -60,51 +57,153 @@ class TransitionAssembler(StepFollower):
     def inputs(self) -> dict[str, tuple[str, Callable]]:
         """The group's topics this assembler reads: relative name -> (type, handler(msg))."""
         out = {wire.ENV_STEP: (wire.FLOATS, self.on_env_step),
-               wire.OBSERVATION: (wire.IMAGE, lambda m: self._image(wire.OBSERVATION, m, 1)),
-               wire.ACTION: (wire.INTS, lambda m: self._ints(wire.ACTION, wire.ACTION_FIELDS, m, self.num_actions))}
+               wire.OBSERVATION: (wire.IMAGE, lambda m: self._images(wire.OBSERVATION, m, 1)),
+               wire.ACTION: (wire.INTS, self._actions)}
         if self.spec.hierarchical:
-            out[wire.SUBGOAL_IMAGES] = (wire.IMAGE, lambda m: self._image(wire.SUBGOAL_IMAGES, m, self.num_subgoals))
-            out[wire.SUBGOAL] = (wire.INTS,
-                                 lambda m: self._ints(wire.SUBGOAL, wire.SUBGOAL_FIELDS, m, self.num_subgoals))
+            out[wire.SUBGOAL_IMAGES] = (wire.IMAGE, lambda m: self._images(wire.SUBGOAL_IMAGES, m, self.num_subgoals))
+            out[wire.SUBGOAL] = (wire.INTS, self._subgoals)
             out[wire.CRITIC] = (wire.FLOATS, self._critic)
         if self.spec.meta_input == "state":
-            out[wire.SUB_STATE] = (wire.FLOATS, self._sub_state)
+            out[wire.SUB_STATE] = (wire.FLOATS, self._sub_states)
         return out
 
-    # -- inputs --------------------------------------------------------------------------------
-    def _image(self, topic: str, msg, rows: int) -> None:
-        got = self.decode(self.topic(topic), lambda: wire.read_image(msg, OBS_SIZE * rows, OBS_SIZE))
+    # -- inputs: each environment's part to its assembler ---------------------------------------------
+    def _group_of(self, n: int, topic: str) -> list["EnvAssembler"]:
+        """The group's assemblers, made for ``n`` environments if there are none yet."""
+        if not self.envs:
+            self.envs = [EnvAssembler(self, i, node=self.node if i == 0 else None) for i in range(n)]
+        elif n != len(self.envs):
+            raise wire.ProtocolError(f"{topic} holds {n} environment(s)' data, the group's messages so far "
+                                     f"{len(self.envs)}")
+        return self.envs
+
+    def on_env_step(self, msg) -> None:
+        def read() -> list[dict]:
+            rows = wire.read_steps(msg)
+            if self.envs and len(rows) != len(self.envs) and all(row["t"] == 0 for row in rows):
+                self.logger.info("group %s now steps %d environment(s) (was %d): starting over", self.ns or "/",
+                                 len(rows), len(self.envs))
+                self.envs = []  # the environment node restarted with another num_envs
+            self._group_of(len(rows), wire.ENV_STEP)
+            return rows
+
+        rows = self.decode(self.topic(wire.ENV_STEP), read)
+        if rows is None:
+            return
+        self.received(rows)
+        for env, row in zip(self.envs, rows):
+            env.take([row])
+
+    def _images(self, topic: str, msg, per_env: int) -> None:
+        def read() -> tuple[int, np.ndarray]:
+            rows, part = int(msg.height), OBS_SIZE * per_env
+            n = rows // part if rows % part == 0 and rows else 0
+            if not 1 <= n <= wire.MAX_ENVS:
+                raise wire.ProtocolError(f"image must be {part}x{OBS_SIZE} per environment (stacked top to bottom), "
+                                         f"got {rows}x{msg.width}")
+            got = wire.read_images(msg, part, OBS_SIZE, n)
+            self._group_of(n, topic)
+            return got
+
+        got = self.decode(self.topic(topic), read)
         if got is not None:
-            self.put(topic, *got)
+            for env, pixels in zip(self.envs, got[1]):
+                env.put(topic, got[0], pixels)
 
-    def _ints(self, topic: str, fields, msg, n: int) -> None:
-        """An ``action`` or ``subgoal`` record; its value (field ``topic``) must be in [0, n)."""
-        def read() -> dict:
-            record = wire.read_record(msg, fields, np.int64)
-            wire.check_index(record[topic], n, topic)
-            return record
+    def _values(self, topic: str, read: Callable[[], tuple[int, np.ndarray]], missing: int | None = None) -> None:
+        """Each environment's value of a per-environment message (none where it is ``missing``)."""
+        def checked() -> tuple[int, np.ndarray]:
+            key, values = read()
+            self._group_of(len(values), topic)
+            return key, values
 
-        record = self.decode(self.topic(topic), read)
-        if record is not None:
-            self.put(topic, record["key"], record)
+        got = self.decode(self.topic(topic), checked)
+        if got is not None:
+            for env, value in zip(self.envs, got[1]):
+                if missing is None or value != missing:
+                    env.put(topic, got[0], value)
+
+    def _actions(self, msg) -> None:
+        self._values(wire.ACTION, lambda: wire.read_actions(msg, self.num_actions), missing=-1)
+
+    def _subgoals(self, msg) -> None:
+        self._values(wire.SUBGOAL, lambda: wire.read_subgoals(msg, self.num_subgoals), missing=-1)
 
     def _critic(self, msg) -> None:
-        record = self.decode(self.topic(wire.CRITIC), lambda: wire.read_record(msg, wire.CRITIC_FIELDS))
-        if record is not None:
-            self.put(wire.CRITIC, record["key"], record)
+        def read() -> tuple[int, list]:
+            verdicts = wire.read_records(msg, wire.CRITIC_FIELDS)
+            return int(verdicts[0]["key"]), verdicts
 
-    def _sub_state(self, msg) -> None:
-        got = self.decode(self.topic(wire.SUB_STATE), lambda: wire.read_state(msg, lstm_state_size))
-        if got is not None:
-            self.put(wire.SUB_STATE, *got)
+        self._values(wire.CRITIC, read)
 
-    def received(self, step: dict) -> None:
-        self.env_steps_seen = int(step["env_steps"])
+    def _sub_states(self, msg) -> None:
+        self._values(wire.SUB_STATE, lambda: wire.read_states(msg, lstm_state_size))
+
+    def received(self, rows: list[dict]) -> None:
+        """Called for every well-formed step (its ``env_step`` records) on arrival."""
+        self.env_steps_seen = int(rows[0]["env_steps"])
+
+    def holds_answers(self, rows: list[dict]) -> bool:
+        """Whether the assemblers hold a step's observations and the controllers' answers to
+        it (:meth:`EnvAssembler.holds_answers`, for every environment of ``rows``)."""
+        return len(rows) == len(self.envs) and all(env.holds_answers(row) for env, row in zip(self.envs, rows))
+
+    # -- what the group's assemblers did, together -----------------------------------------------------
+    @property
+    def transitions(self) -> int:
+        return sum(env.transitions for env in self.envs)
+
+    @property
+    def lost_episodes(self) -> int:
+        return sum(env.lost_episodes for env in self.envs)
+
+    @property
+    def open_episodes(self) -> int:
+        """Episodes begun and not finished (a bag that ends mid-episode)."""
+        return sum(env.open for env in self.envs)
+
+    @property
+    def last_key(self) -> int:
+        """The last step key assembled."""
+        return max((env.last_key for env in self.envs), default=0)
+
+    def stats(self) -> dict:
+        return {"env_steps": self.env_steps_seen, "transitions": self.transitions,
+                "skipped": sum(env.skipped for env in self.envs), "lost_episodes": self.lost_episodes,
+                "rejected": self.rejected, "num_envs": len(self.envs)}
+
+
+class EnvAssembler(StepFollower):
+    """One environment's records of a group's messages (put by its
+    :class:`TransitionAssembler`) -> :class:`StepRecord` rows -> replay episodes. Starts
+    using the environment's data at an episode boundary."""
+
+    skip_stale = False  # a transition needs every step of its episode
+
+    def __init__(self, group: TransitionAssembler, index: int, node=None):
+        super().__init__(node, logger=group.logger)
+        self.group, self.index = group, index
+        self.spec = group.spec
+        cfg = group.cfg
+        self.builder_args = (1, self.spec.hierarchical, cfg.controller("sub").gamma, cfg.meta.gamma,
+                             cfg.smdp_discount)
+        self.transitions = 0
+        self.skipped = 0  # steps seen while waiting for an episode boundary
+        self.lost_episodes = 0  # episodes cut short by missing messages or restarts
+        self.open = False
+
+    def decode(self, topic, read):
+        return self.group.decode(topic, read)
+
+    def topic(self, name: str) -> str:
+        return self.group.topic(name)
 
     def holds_answers(self, step: dict) -> bool:
         """Whether the inbox holds ``step``'s observation and the controllers' answers to it:
         its action and, at an episode's first step, its subgoal and subgoal images."""
         key, box = int(step["key"]), self.inbox
+        if done(step):
+            return box.has(wire.OBSERVATION, key)
         if not (box.has(wire.OBSERVATION, key) and box.has(wire.ACTION, key)):
             return False
         if self.spec.hierarchical and step["t"] == 0:
@@ -112,7 +211,8 @@ class TransitionAssembler(StepFollower):
         return True
 
     # -- assembly -----------------------------------------------------------------------------------
-    def ready(self, step: dict) -> bool:
+    def ready(self, rows: list[dict]) -> bool:
+        step = rows[0]
         key, prev, box = int(step["key"]), int(step["prev_key"]), self.inbox
         if not box.has(wire.OBSERVATION, key):
             return False
@@ -129,7 +229,8 @@ class TransitionAssembler(StepFollower):
             return False
         return not (self.spec.meta_input == "state" and critic["option_done"]) or box.has(wire.SUB_STATE, prev)
 
-    def process(self, step: dict) -> list:
+    def process(self, rows: list[dict]) -> list:
+        step = rows[0]
         key, obs = int(step["key"]), self.inbox.get(wire.OBSERVATION, int(step["key"]))
         if step["t"] == 0:
             if self.open:
@@ -157,7 +258,7 @@ class TransitionAssembler(StepFollower):
 
     def _transition(self, step: dict, obs: np.ndarray) -> None:
         box, key, prev = self.inbox, int(step["key"]), int(step["prev_key"])
-        action = int(box.get(wire.ACTION, prev)["action"])
+        action = int(box.get(wire.ACTION, prev))
         env = wire.step_batch(step, obs)
         if self.spec.hierarchical:
             critic = self.decode(self.topic(wire.CRITIC), lambda: _critic_of(step, box.get(wire.CRITIC, key)))
@@ -167,7 +268,7 @@ class TransitionAssembler(StepFollower):
                 return
             new_option = self.option_next
             if new_option:  # the meta-controller publishes a subgoal when an option starts
-                self.option_subgoal = int(box.get(wire.SUBGOAL, prev)["subgoal"])
+                self.option_subgoal = int(box.get(wire.SUBGOAL, prev))
             subgoal = self.option_subgoal
             intrinsic, reached, option_done = critic["intrinsic"], bool(critic["reached"]), bool(critic["option_done"])
             self.option_next = option_done
@@ -198,23 +299,17 @@ class TransitionAssembler(StepFollower):
             sub_terminal=np.array([sub_terminal]), option_extrinsic=np.array([self.option_extrinsic], np.float32),
             option_steps=np.array([self.option_steps]), meta_next_input=meta_next)
         self.transitions += 1
-        if self.log is not None:
+        if self.group.log is not None:
             self._log(step, action, subgoal, intrinsic, obs)
         for episode in self.builder.add(record):
-            self.on_episode(episode._replace(group=self.ns or "/"))
+            self.group.on_episode(episode._replace(group=self.group.ns or "/"))
             self.open = False
         self.prev_obs = obs
 
     def _log(self, step: dict, action: int, subgoal: int, intrinsic: float, obs: np.ndarray) -> None:
-        row = {"group": self.ns or "/", **{f: step[f] for f in ("key", "prev_key", "episode", "t", "extrinsic",
+        row = {"group": self.group.ns or "/", "env": self.index, **{f: step[f] for f in ("key", "prev_key", "episode", "t", "extrinsic",
                                                                 "classical", "terminated", "truncated")},
                "action": action, "subgoal": subgoal, "intrinsic": intrinsic,
                "obs": wire.obs_digest(self.prev_obs), "next_obs": wire.obs_digest(obs),
                "wall_time": time.time()}  # when assembled (wall clock): latency vs the step_log's wall_time
-        self.log.write(json.dumps(row) + "\n")
-
-    def stats(self) -> dict:
-        return {"env_steps": self.env_steps_seen, "transitions": self.transitions, "skipped": self.skipped,
-                "lost_episodes": self.lost_episodes, "rejected": self.rejected}
-
-
+        self.group.log.write(json.dumps(row) + "\n")

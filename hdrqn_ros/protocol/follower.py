@@ -6,6 +6,9 @@ keeps the other inputs by key in a bounded :class:`KeyedInbox`, and hands a step
 node's ``process`` only when the node says its inputs are all there. Repeated steps (the
 environment re-publishes a step nobody answered) get the node's earlier reply again; an
 environment restart (keys starting over) resets the follower.
+
+A step is the list of its ``env_step`` records, one per environment of the batch the
+environment node steps (``num_envs``; one by default); they share the step key.
 """
 from __future__ import annotations
 
@@ -49,52 +52,95 @@ class KeyedInbox:
         self.slots.clear()
 
 
-class StepFollower:
-    """Base of the critic, meta- and sub-controller nodes and the learner's group assembler.
+class Decoder:
+    """Reads messages with :meth:`decode`: a malformed one is logged (throttled per topic)
+    and counted in :attr:`rejected`. Subclasses set ``node`` (or ``None``) and ``logger``."""
 
-    Subclasses implement ``ready(step) -> bool`` and ``process(step) -> list of
+    node = None
+    logger = None
+
+    def decode(self, topic: str, read: Callable[[], Any]) -> Any:
+        """``read()``, or ``None`` with a logged warning if the message is malformed."""
+        try:
+            return read()
+        except (wire.ProtocolError, ValueError, TypeError, AttributeError) as exc:
+            rejections = self.__dict__.setdefault("_rejections", {})
+            if topic not in rejections:
+                rejections[topic] = Throttle(self.logger, f"rejected a message on {self._name(topic)}")
+            rejections[topic].warn(exc)
+            return None
+
+    def _name(self, topic: str) -> str:
+        return self.node.resolve_topic(topic) if self.node is not None else topic
+
+    @property
+    def rejected(self) -> int:
+        """Malformed messages rejected so far, over all topics."""
+        return sum(t.count for t in self.__dict__.get("_rejections", {}).values())
+
+
+class StepFollower(Decoder):
+    """Base of the critic, meta- and sub-controller nodes and the learner's per-environment
+    assemblers.
+
+    Subclasses implement ``ready(rows) -> bool`` and ``process(rows) -> list of
     (publisher, message)`` (the replies, remembered for repeats) and may override
-    ``reset()``. ``step`` is the ``env_step`` record as a dict of :data:`wire.STEP_FIELDS`."""
+    ``reset()``. ``rows`` are a step's ``env_step`` records, one dict of
+    :data:`wire.STEP_FIELDS` per environment. A follower with ``num_envs`` set stops (exit
+    code 2) at a step of another number of environments: the nodes of a group disagree."""
 
     skip_stale = True
     """Drop queued steps older than a step that is ready (the loop went on without them:
     their inputs were lost). The learner keeps them (an episode needs every step)."""
 
-    def __init__(self, node=None, capacity: int = DEFAULT_CAPACITY, logger=None):
+    def __init__(self, node=None, capacity: int = DEFAULT_CAPACITY, logger=None, num_envs: int | None = None):
         """``node``: the middleware node (logger, topic names, a stall-report timer); without
-        one (reading a bag) give a ``logger``."""
+        one (reading a bag) give a ``logger``. ``num_envs``: the environments per step this
+        follower works with (``None``: any)."""
         self.node = node
         self.logger = logger if logger is not None else node.logger
+        self.num_envs = num_envs
+        self.finished = False
+        self.exit_code = 0
         self.capacity = capacity
         self.inbox = KeyedInbox(capacity)
-        self.queue: deque[dict] = deque()
+        self.queue: deque[list[dict]] = deque()
         self.replies: OrderedDict[int, list] = OrderedDict()
         self.last_key = 0
-        self._rejections: dict[str, Throttle] = {}
         self._head_seen: int | None = None
         if node is not None:
             node.create_timer(5.0, self._report_stall)
 
     # -- inputs ----------------------------------------------------------------------------------
     def on_env_step(self, msg) -> None:
-        step = self.decode(wire.ENV_STEP, lambda: wire.read_step(msg))
-        if step is None:
+        rows = self.decode(wire.ENV_STEP, lambda: wire.read_steps(msg))
+        if rows is None or self.finished:
             return
-        self.received(step)
-        key = int(step["key"])
+        if self.num_envs is not None and len(rows) != self.num_envs:
+            self.logger.error("the environment publishes steps of %d environment(s) on %s, but this node has "
+                              "num_envs %d: give every node of the group the same num_envs; stopping",
+                              len(rows), self._name(wire.ENV_STEP), self.num_envs)
+            self.finished, self.exit_code = True, 2
+            return
+        self.take(rows)
+
+    def take(self, rows: list[dict]) -> None:
+        """Queue a well-formed step (its records, one per environment) and process what is ready."""
+        self.received(rows)
+        key = int(rows[0]["key"])
         if key in self.replies:
             for pub, reply in self.replies[key]:
                 pub.publish(reply)
             return
-        if step["t"] == 0 and key <= self.last_key:
+        if all(row["t"] == 0 for row in rows) and key <= self.last_key:
             self.logger.info("the environment restarted (step keys start over): resynchronising")
             self.reset()
-        elif key <= self.last_key or (self.queue and key <= self.queue[-1]["key"]):
+        elif key <= self.last_key or (self.queue and key <= self.queue[-1][0]["key"]):
             return  # stale or repeated before we answered
-        self.queue.append(step)
+        self.queue.append(rows)
         if len(self.queue) > self.capacity:
             dropped = self.queue.popleft()
-            self.logger.warning("inputs for step key %d never arrived; skipping it", int(dropped["key"]))
+            self.logger.warning("inputs for step key %d never arrived; skipping it", int(dropped[0]["key"]))
         self.pump()
 
     def put(self, topic: str, key: int, value: Any) -> None:
@@ -102,60 +148,44 @@ class StepFollower:
             self.inbox.put(topic, key, value)
         self.pump()
 
-    def decode(self, topic: str, read: Callable[[], Any]) -> Any:
-        """``read()``, or ``None`` with a logged warning if the message is malformed."""
-        try:
-            return read()
-        except (wire.ProtocolError, ValueError, TypeError, AttributeError) as exc:
-            if topic not in self._rejections:
-                name = self.node.resolve_topic(topic) if self.node is not None else topic
-                self._rejections[topic] = Throttle(self.logger, f"rejected a message on {name}")
-            self._rejections[topic].warn(exc)
-            return None
-
-    @property
-    def rejected(self) -> int:
-        """Malformed messages rejected so far, over all topics."""
-        return sum(t.count for t in self._rejections.values())
-
     # -- processing ------------------------------------------------------------------------------
     def pump(self) -> None:
         if self.skip_stale and self.queue and not self.ready(self.queue[0]):
-            ready_at = next((i for i, step in enumerate(self.queue) if i and self.ready(step)), 0)
+            ready_at = next((i for i, rows in enumerate(self.queue) if i and self.ready(rows)), 0)
             for _ in range(ready_at):
                 stale = self.queue.popleft()
                 self.logger.warning("skipping step key %d: a later step is complete, its inputs are not",
-                                         int(stale["key"]))
+                                    int(stale[0]["key"]))
         while self.queue and self.ready(self.queue[0]):
-            step = self.queue.popleft()
-            key = int(step["key"])
-            replies = self.process(step)
+            rows = self.queue.popleft()
+            key = int(rows[0]["key"])
+            replies = self.process(rows)
             for pub, reply in replies:
                 pub.publish(reply)
             self.replies[key] = replies
             while len(self.replies) > 8:
                 self.replies.popitem(last=False)
             self.last_key = key
-            self.inbox.forget_before(int(step["prev_key"]) or key)
+            self.inbox.forget_before(min((int(row["prev_key"]) for row in rows if row["prev_key"]), default=key))
 
-    def received(self, step: dict) -> None:
-        """Called for every well-formed ``env_step`` on arrival (before ordering)."""
+    def received(self, rows: list[dict]) -> None:
+        """Called for every well-formed step (its ``env_step`` records) on arrival (before ordering)."""
 
     def _report_stall(self) -> None:
         """Log once per 5 s while the same step waits at the head of the queue."""
-        head = int(self.queue[0]["key"]) if self.queue else None
+        head = int(self.queue[0][0]["key"]) if self.queue else None
         if head is not None and head == self._head_seen:
-            step = self.queue[0]
+            step = self.queue[0][0]
             have = sorted(t for t, slot in self.inbox.slots.items() if head in slot or int(step["prev_key"]) in slot)
             self.logger.warning("step key %d (t=%d, episode %d) still waits for its inputs; have %s for it or "
-                                     "its previous step %d; %d steps queued", head, step["t"], step["episode"],
-                                     have, int(step["prev_key"]), len(self.queue))
+                                "its previous step %d; %d steps queued", head, step["t"], step["episode"],
+                                have, int(step["prev_key"]), len(self.queue))
         self._head_seen = head
 
-    def ready(self, step: dict) -> bool:
+    def ready(self, rows: list[dict]) -> bool:
         raise NotImplementedError
 
-    def process(self, step: dict) -> list:
+    def process(self, rows: list[dict]) -> list:
         raise NotImplementedError
 
     def reset(self) -> None:
@@ -166,5 +196,11 @@ class StepFollower:
 
 
 def done(step: dict) -> bool:
-    """The step ended its episode."""
+    """The step (one environment's record) ended its episode."""
     return bool(step["terminated"] or step["truncated"])
+
+
+def all_done(rows: list[dict]) -> bool:
+    """Every environment's episode ended at this step (nobody acts on it: the environment
+    node starts new episodes without waiting for an action)."""
+    return all(done(row) for row in rows)

@@ -34,7 +34,7 @@ class GroupAssembler(TransitionAssembler):
         super().__init__(namespace, learner.cfg, learner.agent.num_subgoals, self._acknowledge, node=node, log=log)
         self.episodes, self.graph_recorder = episodes, recorder
         self.acked_episodes = self.acked_steps = 0
-        self.first_step: dict | None = None  # the first env_step heard from the group
+        self.first_step: list[dict] | None = None  # the first step heard from the group (its records)
         self.synced = False  # no credit before the learner holds a whole step's messages (see publish_credit)
         self.last_credit: tuple | None = None
         inputs = self.inputs()
@@ -53,10 +53,10 @@ class GroupAssembler(TransitionAssembler):
             self.acked_steps += episode.stats.steps
         self.episodes.put(episode)
 
-    def received(self, step: dict) -> None:
-        super().received(step)
-        if self.first_step is None:
-            self.first_step = step
+    def received(self, rows: list[dict]) -> None:
+        super().received(rows)
+        if self.first_step is None or len(self.first_step) != len(rows):
+            self.first_step, self.synced = rows, False
 
     def stats(self) -> dict:
         """The assembler's counters, plus ``acked_episodes``/``acked_steps``: the episodes
@@ -71,10 +71,14 @@ class GroupAssembler(TransitionAssembler):
         the controllers' answers to it: a subscription matched late (discovery is per topic)
         would miss them, and the env would run on while every later step waits for them.
         Without credit the env re-publishes its step after ``action_timeout`` and the
-        controllers their answers, which the late subscription then gets."""
+        controllers their answers, which the late subscription then gets.
+
+        ``window`` is in steps of the environment node: a batch of N environments may take
+        ``window * N`` env steps ahead."""
         if not self.synced and self.first_step is not None:
             self.synced = self.holds_answers(self.first_step)
-        credit = self.env_steps_seen + window if owed_ok and self.synced else self.env_steps_seen
+        ahead = window * max(1, len(self.envs))
+        credit = self.env_steps_seen + ahead if owed_ok and self.synced else self.env_steps_seen
         values = (credit, round(eps[0], 4), round(eps[1], 4))
         if values == self.last_credit and not force:
             return

@@ -32,6 +32,7 @@ OBSERVATION = "observation"
 SUBGOAL_IMAGES = "subgoal_images"
 ENV_STEP = "env_step"
 POSE = "pose"
+POSES = "poses"
 CRITIC = "critic"
 SUBGOAL = "subgoal"
 ACTION = "action"
@@ -47,6 +48,7 @@ INTS = "std_msgs/msg/Int64MultiArray"
 BYTES = "std_msgs/msg/UInt8MultiArray"
 STRING = "std_msgs/msg/String"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+POSE_ARRAY = "geometry_msgs/msg/PoseArray"
 CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
 
 STEP_FIELDS = ("key", "prev_key", "env_steps", "episode", "t", "action", "extrinsic", "classical", "terminated", "truncated",
@@ -125,13 +127,74 @@ def make_record(node, type_name: str, fields: tuple[str, ...], values) -> object
     return node.msg(type_name)(layout=_layout(node, fields), data=node.pack(np.asarray(values, dtype=dtype)))
 
 
+ENV_DIM = "env"
+"""Label of the leading layout dimension of a message that holds one record per environment."""
+MAX_ENVS = 64
+"""Most environments one environment node steps as a batch (its ``num_envs``)."""
+
+
+def _rows_layout(node, n: int, label: str, width: int) -> object:
+    """The layout of ``n`` rows of ``width`` values: dimensions ``env`` (n) and ``label`` (width)."""
+    layout_cls = node.msg("std_msgs/msg/MultiArrayLayout")
+    layout = _layouts.get((layout_cls, label, n, width))
+    if layout is None:
+        dim = node.msg("std_msgs/msg/MultiArrayDimension")
+        layout = _layouts[(layout_cls, label, n, width)] = layout_cls(
+            dim=[dim(label=ENV_DIM, size=n, stride=n * width), dim(label=label, size=width, stride=width)],
+            data_offset=0)
+    return layout
+
+
+def make_records(node, type_name: str, fields: tuple[str, ...], rows) -> object:
+    """One record per environment: ``rows`` (N, len(fields)). For N = 1 exactly
+    :func:`make_record`'s message (the single-environment wire format); for N > 1 the
+    layout's dimensions are ``env`` (N) and the field names."""
+    dtype = np.float64 if type_name == FLOATS else np.int64
+    rows = np.asarray(rows, dtype=dtype)
+    if len(rows) == 1:
+        return make_record(node, type_name, fields, rows[0])
+    return node.msg(type_name)(layout=_rows_layout(node, len(rows), ",".join(fields), len(fields)),
+                               data=node.pack(rows.reshape(-1)))
+
+
+def envs_in(msg) -> int:
+    """How many environments a ``*MultiArray`` message holds: the size of its leading
+    ``env`` dimension (2..:data:`MAX_ENVS`), 1 without one."""
+    dims = msg.layout.dim
+    if len(dims) < 2 or dims[0].label != ENV_DIM:
+        return 1
+    n = int(dims[0].size)
+    if not 2 <= n <= MAX_ENVS:
+        raise ProtocolError(f"layout dimension {ENV_DIM!r} has size {n}, expected 2..{MAX_ENVS}")
+    return n
+
+
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 def read_record(msg, fields: tuple[str, ...], dtype=np.float64, extra: bool = False) -> dict[str, float]:
     """The named values of a ``*MultiArray`` record; ``extra``: trailing values allowed
     (returned under ``"rest"``). Raises :class:`ProtocolError` on a malformed message."""
+    return _record(as_array(msg.data, dtype), fields, dtype, extra)
+
+
+def read_records(msg, fields: tuple[str, ...], dtype=np.float64, extra: bool = False) -> list[dict[str, float]]:
+    """The records of a message with one per environment (:func:`make_records`; a message
+    without an ``env`` dimension holds one), as :func:`read_record` reads each. Every
+    record's ``key`` must be the same."""
+    n = envs_in(msg)
     data = as_array(msg.data, dtype)
+    if n == 1:
+        return [_record(data, fields, dtype, extra)]
+    if data.size % n:
+        raise ProtocolError(f"{data.size} values do not split into {n} environments' records")
+    rows = [_record(row, fields, dtype, extra) for row in data.reshape(n, -1)]
+    if "key" in fields and len({row["key"] for row in rows}) > 1:
+        raise ProtocolError("the environments' records carry different step keys")
+    return rows
+
+
+def _record(data: np.ndarray, fields: tuple[str, ...], dtype, extra: bool) -> dict[str, float]:
     num_fields = len(fields)
     if data.size < num_fields or (data.size != num_fields and not extra):
         raise ProtocolError(f"expected {num_fields} values ({','.join(fields)}), got {data.size}")
@@ -152,11 +215,20 @@ MAX_SUBGOALS = 128
 """Subgoal indices are below this (replay stores them as int8)."""
 
 
+def read_steps(msg) -> list[dict[str, float]]:
+    """The ``env_step`` records of a message (one per environment), each checked as
+    :func:`read_step` says."""
+    return [_check_step(record) for record in read_records(msg, STEP_FIELDS)]
+
+
 def read_step(msg) -> dict[str, float]:
     """An ``env_step`` record whose fields are what the protocol says: :data:`STEP_COUNTS`
     integers in [0, 2^53), :data:`STEP_FLAGS` 0 or 1, ``at_subgoal`` in [-1, 128).
     Raises :class:`ProtocolError` naming the field."""
-    record = read_record(msg, STEP_FIELDS)
+    return _check_step(read_record(msg, STEP_FIELDS))
+
+
+def _check_step(record: dict[str, float]) -> dict[str, float]:
     for field in STEP_COUNTS:
         if not (0 <= record[field] < MAX_KEY and float(record[field]).is_integer()):
             raise ProtocolError(f"env_step {field} {record[field]!r} is not an integer in [0, 2^53)")
@@ -165,6 +237,32 @@ def read_step(msg) -> dict[str, float]:
             raise ProtocolError(f"env_step {field} must be 0 or 1, got {record[field]!r}")
     check_index(record["at_subgoal"], MAX_SUBGOALS, "env_step at_subgoal", allow_none=True)
     return record
+
+
+def _check_envs(records: list, num_envs: int | None, what: str) -> None:
+    if num_envs is not None and len(records) != num_envs:
+        raise ProtocolError(f"{what} holds {len(records)} environment(s)' records, expected {num_envs}")
+
+
+def read_subgoals(msg, num_subgoals: int, num_envs: int | None = None) -> tuple[int, np.ndarray]:
+    """(key, (N,) int64) from a ``subgoal`` message: each environment's new option's
+    subgoal, -1 for environments of a batch whose option goes on (``new_option`` 0)."""
+    records = read_records(msg, SUBGOAL_FIELDS, np.int64)
+    _check_envs(records, num_envs, "subgoal")
+    batch = len(records) > 1
+    chosen = [check_index(r["subgoal"], num_subgoals, "subgoal") if r["new_option"] or not batch else -1
+              for r in records]
+    return int(records[0]["key"]), np.array(chosen, np.int64)
+
+
+def read_actions(msg, num_actions: int, num_envs: int | None = None) -> tuple[int, np.ndarray]:
+    """(key, (N,) int64) from an ``action`` message; in a batch, -1 for an environment
+    that takes no action (its episode ended at this step)."""
+    records = read_records(msg, ACTION_FIELDS, np.int64)
+    _check_envs(records, num_envs, "action")
+    allow_none = len(records) > 1
+    return int(records[0]["key"]), np.array([check_index(r["action"], num_actions, "action", allow_none)
+                                             for r in records], np.int64)
 
 
 def make_time(node, key: int) -> object:
@@ -179,10 +277,19 @@ def make_header(node, key: int, frame_id: str) -> object:
 
 def make_pose(node, key: int, frame_id: str, x: float, y: float) -> object:
     """``geometry_msgs/PoseStamped`` at (x, y) (grid: column, row), identity orientation."""
-    pose = node.msg("geometry_msgs/msg/Pose")(
+    return node.msg(POSE_STAMPED)(header=make_header(node, key, frame_id), pose=_pose(node, x, y))
+
+
+def make_poses(node, key: int, frame_id: str, positions: list[tuple[float, float]]) -> object:
+    """``geometry_msgs/PoseArray`` of a batch's agents, one (x, y) pose per environment."""
+    return node.msg(POSE_ARRAY)(header=make_header(node, key, frame_id), poses=[
+        _pose(node, x, y) for x, y in positions])
+
+
+def _pose(node, x: float, y: float) -> object:
+    return node.msg("geometry_msgs/msg/Pose")(
         position=node.msg("geometry_msgs/msg/Point")(x=x, y=y, z=0.0),
         orientation=node.msg("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=0.0, w=1.0))
-    return node.msg(POSE_STAMPED)(header=make_header(node, key, frame_id), pose=pose)
 
 
 def make_state(node, key: int, state: np.ndarray) -> object:
@@ -193,16 +300,44 @@ def make_state(node, key: int, state: np.ndarray) -> object:
     return node.msg(FLOATS)(layout=layout, data=node.pack(np.concatenate([[float(key)], state]).astype(np.float64)))
 
 
+def make_states(node, key: int, states: np.ndarray) -> object:
+    """``sub_state`` of N environments: (N, state) float; N = 1 is :func:`make_state`'s
+    message, N > 1 has the rows ``[key, state...]`` under an ``env`` dimension."""
+    if len(states) == 1:
+        return make_state(node, key, states[0])
+    rows = np.concatenate([np.full((len(states), 1), float(key)), states], axis=1).astype(np.float64)
+    return node.msg(FLOATS)(layout=_rows_layout(node, len(rows), "key,state", rows.shape[1]),
+                            data=node.pack(rows.reshape(-1)))
+
+
 def read_state(msg, size: int) -> tuple[int, np.ndarray]:
     """(key, (size,) float32) from a ``sub_state`` message."""
-    record = read_record(msg, ("key",), extra=True)
-    if record["rest"].size != size:
-        raise ProtocolError(f"sub_state must hold {size} state values, got {record['rest'].size}")
-    return int(record["key"]), record["rest"].astype(np.float32)
+    key, states = read_states(msg, size)
+    if len(states) != 1:
+        raise ProtocolError(f"sub_state holds {len(states)} environments' states, expected 1")
+    return key, states[0]
+
+
+def read_states(msg, size: int) -> tuple[int, np.ndarray]:
+    """(key, (N, size) float32) from a ``sub_state`` message of N environments."""
+    records = read_records(msg, ("key",), extra=True)
+    for record in records:
+        if record["rest"].size != size:
+            raise ProtocolError(f"sub_state must hold {size} state values, got {record['rest'].size}")
+    return int(records[0]["key"]), np.stack([r["rest"] for r in records]).astype(np.float32)
+
+
+def read_images(msg, height: int, width: int, num_envs: int) -> tuple[int, np.ndarray]:
+    """(key, (num_envs, height, width, 3) uint8) from an rgb8 Image of the environments'
+    ``height`` x ``width`` images stacked top to bottom."""
+    key, pixels = read_image(msg, height * num_envs, width)
+    return key, pixels.reshape(num_envs, height, width, 3)
 
 
 def make_image(node, key: int, pixels: np.ndarray, frame_id: str) -> object:
-    """``sensor_msgs/Image`` rgb8 of (H, W, 3) uint8 ``pixels``, stamped with ``key``."""
+    """``sensor_msgs/Image`` rgb8 of (H, W, 3) uint8 ``pixels``, stamped with ``key``
+    ((N, H, W, 3): the N images stacked top to bottom, one (N*H, W) image)."""
+    pixels = pixels.reshape(-1, *pixels.shape[-2:])
     h, w, _ = pixels.shape
     header = make_header(node, key, frame_id)
     return node.msg(IMAGE)(header=header, height=h, width=w, encoding="rgb8", is_bigendian=0, step=w * 3,
@@ -245,15 +380,19 @@ def step_outcome(step: StepBatch, i: int) -> dict:
             "decision_point": bool((step.at_subgoal[i] >= 0 or step.life_lost[i]) and not done)}
 
 
-def step_batch(step: dict, obs: np.ndarray | None = None) -> StepBatch:
-    """A one-row :class:`StepBatch` from an ``env_step`` record (``obs``: (44, 44, 3) or none)."""
-    def col(name, dtype):
-        return np.array([step[name]], dtype)
+def step_batch(steps: dict | list[dict], obs: np.ndarray | None = None) -> StepBatch:
+    """A :class:`StepBatch` from ``env_step`` records (one dict: one row; ``obs``: the
+    rows' (44, 44, 3) observations, or none)."""
+    steps = [steps] if isinstance(steps, dict) else steps
+    n = len(steps)
 
-    return StepBatch(obs=np.zeros((1, 0, 0, 3), np.uint8) if obs is None else obs[None],
+    def col(name, dtype):
+        return np.array([step[name] for step in steps], dtype)
+
+    return StepBatch(obs=np.zeros((n, 0, 0, 3), np.uint8) if obs is None else obs.reshape(n, *obs.shape[-3:]),
                      classical=col("classical", np.float32), extrinsic=col("extrinsic", np.float32),
                      terminated=col("terminated", bool), truncated=col("truncated", bool),
-                     agent_pos=np.zeros((1, 2), np.int32), at_subgoal=col("at_subgoal", np.int32),
+                     agent_pos=np.zeros((n, 2), np.int32), at_subgoal=col("at_subgoal", np.int32),
                      collected=col("collected", bool), hit_obstacle=col("hit_obstacle", bool),
                      life_lost=col("life_lost", bool), success=col("success", bool))
 

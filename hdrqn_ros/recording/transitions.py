@@ -271,38 +271,43 @@ def read_episodes(paths, cfg: TrainConfig, num_subgoals: int, stats: BagReadStat
             while finished:
                 stats.episodes[key] = stats.episodes.get(key, 0) + 1
                 yield finished.pop(0)
-        stats.incomplete_episodes[key] = sum(a.lost_episodes + a.open for a in assemblers)
+        stats.incomplete_episodes[key] = sum(a.lost_episodes + a.open_episodes for a in assemblers)
 
 
 def episode_summary(path) -> dict[str, dict]:
-    """Per group of a recording (from its ``env_step`` topic alone): complete episodes,
-    mean return (classical reward), success rate, mean length, and episodes cut short."""
+    """Per group of a recording (from its ``env_step`` topic alone): the environments it
+    steps, complete episodes, mean return (classical reward), success rate, mean length,
+    and episodes cut short."""
     groups = {wire.group_topic(ns, wire.ENV_STEP): ns for ns, have in bag_groups(path).items()
               if have.get(wire.ENV_STEP) == wire.FLOATS}
-    acc = {ns: {"episodes": 0, "incomplete": 0, "returns": [], "successes": 0, "steps": 0} for ns in groups.values()}
-    open_return: dict[str, float | None] = dict.fromkeys(groups.values())
+    acc = {ns: {"episodes": 0, "incomplete": 0, "returns": [], "successes": 0, "steps": 0, "num_envs": 0}
+           for ns in groups.values()}
+    open_return: dict[tuple[str, int], float | None] = {}  # (group, environment) -> return so far
     for topic, type_name, _t, cdr in read_messages(path, topics=groups):
         ns, totals = groups[topic], acc[groups[topic]]
         try:
-            step = wire.read_record(TYPESTORE.deserialize_cdr(cdr, type_name), wire.STEP_FIELDS)
+            rows = wire.read_steps(TYPESTORE.deserialize_cdr(cdr, type_name))
         except Exception as exc:  # not our layout, or garbled
             raise BagError(f"{path}: topic {topic}: {exc}") from None
-        if step["t"] == 0:
-            if open_return[ns] is not None:
-                totals["incomplete"] += 1
-            open_return[ns] = 0.0
-        elif open_return[ns] is not None:
-            open_return[ns] += step["classical"]
-            if step["terminated"] or step["truncated"]:
-                totals["episodes"] += 1
-                totals["returns"].append(open_return[ns])
-                totals["successes"] += bool(step["success"])
-                totals["steps"] += int(step["t"])
-                open_return[ns] = None
+        totals["num_envs"] = len(rows)
+        for i, step in enumerate(rows):
+            so_far = open_return.get((ns, i))
+            if step["t"] == 0:
+                totals["incomplete"] += so_far is not None
+                open_return[ns, i] = 0.0
+            elif so_far is not None:
+                open_return[ns, i] = so_far + step["classical"]
+                if step["terminated"] or step["truncated"]:
+                    totals["episodes"] += 1
+                    totals["returns"].append(open_return[ns, i])
+                    totals["successes"] += bool(step["success"])
+                    totals["steps"] += int(step["t"])
+                    open_return[ns, i] = None
     out = {}
     for ns, totals in acc.items():
         episodes = totals["episodes"]
-        out[ns] = {"episodes": episodes, "incomplete": totals["incomplete"] + (open_return[ns] is not None),
+        still_open = sum(v is not None for (group, _), v in open_return.items() if group == ns)
+        out[ns] = {"num_envs": totals["num_envs"], "episodes": episodes, "incomplete": totals["incomplete"] + still_open,
                    "mean_return": float(np.mean(totals["returns"])) if episodes else None,
                    "success_rate": totals["successes"] / episodes if episodes else None,
                    "mean_steps": totals["steps"] / episodes if episodes else None}

@@ -28,16 +28,19 @@ def view_parameter(cfg: TrainConfig) -> str:
     return str(cfg.env_kwargs.get("view", 5))
 
 
-def write_params(cfg: TrainConfig, run_dir: Path, groups: int, config_file: Path, interface: str | None = None, extra: dict | None = None) -> Path:
-    """Write ``run_dir/params.yaml`` for the graph of ``cfg`` and return its path."""
+def write_params(cfg: TrainConfig, run_dir: Path, groups: int, config_file: Path, interface: str | None = None,
+                 extra: dict | None = None, num_envs: int = 1) -> Path:
+    """Write ``run_dir/params.yaml`` for the graph of ``cfg`` (``num_envs`` environments
+    per environment node) and return its path."""
     shared = {"algo": cfg.algo, "env": cfg.env, "view": view_parameter(cfg), "seed": cfg.seed}
     if interface:
         shared["dds_interface"] = interface
     doc = {
         "/**": {"ros__parameters": shared},
-        "/**/environment": {"ros__parameters": {"wait_for_learner": True}},
-        "/**/meta_controller": {"ros__parameters": {"meta_state": cfg.meta_state}},
-        "/**/sub_controller": {"ros__parameters": {"meta_state": cfg.meta_state}},
+        "/**/environment": {"ros__parameters": {"wait_for_learner": True, "num_envs": num_envs}},
+        "/**/critic": {"ros__parameters": {"num_envs": num_envs}},
+        "/**/meta_controller": {"ros__parameters": {"meta_state": cfg.meta_state, "num_envs": num_envs}},
+        "/**/sub_controller": {"ros__parameters": {"meta_state": cfg.meta_state, "num_envs": num_envs}},
         "/learner": {"ros__parameters": {"config": str(config_file), "episodes": cfg.episodes,
                                         "run_dir": str(run_dir), "groups": group_namespaces(groups)}},
     }

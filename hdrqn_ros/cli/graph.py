@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from hdrqn_ros.cli.common import UsageError, config_from_args, done_line
+from hdrqn_ros.protocol.wire import MAX_ENVS
 
 MAX_GROUPS = 64
 """Most environment/controller groups ``hdrqn up`` starts (each is 4 node processes)."""
@@ -35,6 +36,9 @@ def add_up(sub) -> None:
     parser.add_argument("--seed", type=int, help="seed (group i's environment uses seed + 1000 i)")
     parser.add_argument("--view", help="observation window: 3, 5, 11 or full (gridworld domains)")
     parser.add_argument("--groups", type=int, default=1, help="environment/controller groups feeding the learner")
+    parser.add_argument("--num-envs", type=int, default=1,
+                        help=f"environments each environment node steps as one batch (1..{MAX_ENVS}; the "
+                             "controllers act on the whole batch in one forward pass; default 1)")
     parser.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)")
     parser.add_argument("--interface", help="network interface for DDS (default: loopback only)")
     parser.add_argument("--middleware", choices=BACKENDS, default=None,
@@ -66,6 +70,8 @@ def cmd_up(args) -> int:
         raise UsageError(str(exc)) from None
     if not 1 <= args.groups <= MAX_GROUPS:
         raise UsageError(f"--groups must be in 1..{MAX_GROUPS} (4 node processes each), got {args.groups}")
+    if not 1 <= args.num_envs <= MAX_ENVS:
+        raise UsageError(f"--num-envs must be in 1..{MAX_ENVS}, got {args.num_envs}")
     if (run_dir / "checkpoints" / "last.pt").exists() and not args.resume:
         raise UsageError(f"{run_dir} already holds a run; pass --resume to continue it or choose another --out")
     cfg = config_from_args(args)
@@ -76,7 +82,8 @@ def cmd_up(args) -> int:
     if args.record and os.path.lexists(args.record):
         raise UsageError(f"{args.record} already exists; refusing to overwrite a recording")
     extra = {"learner": {"record": str(Path(args.record).resolve())}} if args.record else None
-    params = write_params(cfg, run_dir, args.groups, config_file, interface=args.interface, extra=extra)
+    params = write_params(cfg, run_dir, args.groups, config_file, interface=args.interface, extra=extra,
+                          num_envs=args.num_envs)
     env = {BACKEND_ENV: backend}
     if args.domain_id is not None:
         if not 0 <= args.domain_id <= 232:
@@ -85,7 +92,7 @@ def cmd_up(args) -> int:
     specs = graph_processes(cfg, params, args.groups, respawn=not args.no_respawn)
     nodes = "rclpy (ROS 2 Jazzy, Fast DDS)" if backend == "rclpy" else "Cyclone DDS"
     print(f"starting {len(specs)} {nodes} node processes for {cfg.algo} on {cfg.env} {cfg.env_kwargs} "
-          f"({args.groups} group(s), {cfg.episodes} episodes, DDS on {args.interface or 'loopback'}) -> {run_dir}; "
+          f"({args.groups} group(s) of {args.num_envs} env(s), {cfg.episodes} episodes, DDS on {args.interface or 'loopback'}) -> {run_dir}; "
           f"node logs in {run_dir / 'logs'}", file=sys.stderr)
     summary_path = run_dir / "summary.json"
     supervisor = Supervisor(specs, env=env, log_dir=run_dir / "logs", status=lambda: _graph_status(run_dir))

@@ -16,7 +16,9 @@ from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint
 
 
 class TorchActingNetwork(ActingNetwork):
-    """Inference tensors: its LSTM states are replaced, never changed in place (N = 1)."""
+    """Acts under inference mode. At N = 1 its LSTM states (inference tensors) are replaced,
+    never changed in place; for a batch they are cloned into normal tensors, which the
+    policy updates row by row."""
 
     def __init__(self, node: Node, role: str, params: dict, default_epsilon: float,
                  num_actions: int, num_subgoals: int):
@@ -54,6 +56,8 @@ class TorchActingNetwork(ActingNetwork):
     def act(self, x: np.ndarray, state):
         with torch.inference_mode():
             q, state = self.net.act(torch.tensor(x), state)  # a copy: x may be read-only
+        if state is not None and len(x) > 1:
+            state = tuple(part.clone() for part in state)
         return q.numpy(), state
 
     def initial_state(self, batch_size: int):

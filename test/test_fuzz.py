@@ -403,6 +403,35 @@ def test_the_learner_holds_a_first_step_only_with_the_controllers_answers():
     assert held == [False, False, False, False, False, True]
 
 
+def test_batched_records_split_into_the_single_environment_ones():
+    """A batch of N records is N single-environment records under an ``env`` dimension; for
+    N = 1 the message is byte for byte the single-environment one."""
+    m = RosbagsMessages()
+    rows = [[5_000_000 + 0.0 * i, 1, 2, 3, i % 4] for i in range(3)]
+    one = TYPESTORE.serialize_cdr(wire.make_records(m, wire.INTS, wire.SUBGOAL_FIELDS[:2] + ("a", "b", "c"), rows[:1]),
+                                  wire.INTS)
+    assert one == TYPESTORE.serialize_cdr(wire.make_record(m, wire.INTS, wire.SUBGOAL_FIELDS[:2] + ("a", "b", "c"),
+                                                           rows[0]), wire.INTS)
+    step = dict.fromkeys(wire.STEP_FIELDS, 0.0) | {"key": 7e6, "t": 2, "prev_key": 6e6, "action": 1}
+    batch = wire.make_records(m, wire.FLOATS, wire.STEP_FIELDS,
+                              [[step[f] if f != "action" else i for f in wire.STEP_FIELDS] for i in range(4)])
+    assert [d.label for d in batch.layout.dim] == [wire.ENV_DIM, ",".join(wire.STEP_FIELDS)]
+    assert [r["action"] for r in wire.read_steps(batch)] == [0, 1, 2, 3]
+    assert wire.envs_in(batch) == 4 and wire.envs_in(wire.make_record(m, wire.FLOATS, ("key",), [1])) == 1
+    batch.data[len(wire.STEP_FIELDS)] = 8e6  # environment 1's key differs
+    with pytest.raises(wire.ProtocolError, match="different step keys"):
+        wire.read_steps(batch)
+    actions = wire.make_records(m, wire.INTS, wire.ACTION_FIELDS, [[7, -1], [7, 2]])
+    assert wire.read_actions(actions, 4)[1].tolist() == [-1, 2]  # no action: that episode ended
+    with pytest.raises(wire.ProtocolError, match="expected 3"):
+        wire.read_actions(actions, 4, num_envs=3)
+    with pytest.raises(wire.ProtocolError, match="out of range"):  # one environment always acts
+        wire.read_actions(wire.make_record(m, wire.INTS, wire.ACTION_FIELDS, [7, -1]), 4)
+    actions.layout.dim[0].size = wire.MAX_ENVS + 1
+    with pytest.raises(wire.ProtocolError, match="expected 2..64"):
+        wire.read_actions(actions, 4)
+
+
 @settings(max_examples=150, **QUICK)
 @given(episodes=fuzzed_episodes)
 def test_learner_assembles_random_messages_without_crashing(episodes):

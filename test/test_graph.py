@@ -24,7 +24,7 @@ from hdrqn_ros.middleware.port import LATCHED_QOS, QoS
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.wire import obs_digest
 from hdrqn_ros.recording.bag import BagWriter
-from hdrqn_ros.recording.transitions import GROUP_TOPICS, read_episodes
+from hdrqn_ros.recording.transitions import GROUP_TOPICS, episode_summary, read_episodes
 from hdrqn_ros.supervisor import ProcessSpec, Supervisor
 from hdrqn_ros.throttle import BURST
 
@@ -64,24 +64,26 @@ def read_jsonl(path: Path) -> list[dict]:
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 
 
-def graph_params(tmp_path: Path, cfg, groups: int = 1, extra: dict | None = None) -> Path:
+def graph_params(tmp_path: Path, cfg, groups: int = 1, extra: dict | None = None, num_envs: int = 1) -> Path:
     """``tmp_path/run`` with the config as ``config-in.yaml`` and the graph's ``params.yaml`` (returned)."""
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     config = run_dir / "config-in.yaml"
     config.write_text(json.dumps(cfg.model_dump()))
-    return write_params(cfg, run_dir, groups, config, extra=extra)
+    return write_params(cfg, run_dir, groups, config, extra=extra, num_envs=num_envs)
 
 
 def start_graph(tmp_path: Path, algo: str = "hdrqn-v2", episodes: int = 8, respawn: bool = False,
-                learner: dict | None = None, middleware: dict[str, str] | None = None) -> Supervisor:
+                learner: dict | None = None, middleware: dict[str, str] | None = None, num_envs: int = 1) -> Supervisor:
+    """The graph with the Nav2 adapters on (one environment), or a batch of ``num_envs``."""
     cfg = build_config([], algo=algo, env=ENV, episodes=episodes, seed=3, learning_starts=60, checkpoint_every=2,
                        eval_episodes=4, update_every=5, sub={"batch_size": 2}, meta={"batch_size": 2})
-    params = graph_params(tmp_path, cfg, extra={
+    nav = {"meta_controller": {"subgoal_table": str(CONFIG / "nav2" / "subgoals.yaml")},
+           "sub_controller": {"action_table": str(CONFIG / "nav2" / "actions.yaml")}} if num_envs == 1 else {}
+    params = graph_params(tmp_path, cfg, num_envs=num_envs, extra={
         "environment": {"step_log": str(tmp_path / "env_steps.jsonl")},
         "learner": {"transition_log": str(tmp_path / "transitions.jsonl"), "weights_every": 5, **(learner or {})},
-        "meta_controller": {"subgoal_table": str(CONFIG / "nav2" / "subgoals.yaml")},
-        "sub_controller": {"action_table": str(CONFIG / "nav2" / "actions.yaml")}})
+        **nav})
     sup = Supervisor(graph_processes(cfg, params, 1, respawn=respawn, middleware=middleware), log_dir=tmp_path / "logs",
                      stop_timeout_s=5)
     sup.start()
@@ -89,11 +91,17 @@ def start_graph(tmp_path: Path, algo: str = "hdrqn-v2", episodes: int = 8, respa
 
 
 def check_env_log_replays_in_process(env_rows: list[dict], seed: int = 3) -> None:
-    """The environment node's steps equal an in-process env stepped with the same seed and actions."""
+    """The environment node's steps equal an in-process env stepped with the same seed and
+    actions (environment ``i`` of a batch: seed + i)."""
+    for i in sorted({row["env"] for row in env_rows}):
+        check_one_env_replays(i, [row for row in env_rows if row["env"] == i], seed + i)
+
+
+def check_one_env_replays(env: int, env_rows: list[dict], seed: int) -> None:
     batch = make_batch(ENV, 1)
     obs = batch.reset(seed=seed)[0]
     for row in env_rows:
-        assert row["obs"] == obs_digest(obs), f"observation mismatch before step key {row['key']}"
+        assert row["obs"] == obs_digest(obs), f"observation mismatch before step key {row['key']} of env {env}"
         step = batch.step(np.array([row["action"]]))
         assert row["next_obs"] == obs_digest(step.obs[0])
         assert (row["extrinsic"], row["terminated"], row["truncated"]) == \
@@ -102,11 +110,12 @@ def check_env_log_replays_in_process(env_rows: list[dict], seed: int = 3) -> Non
 
 
 def check_transitions_match_env(transitions: list[dict], env_rows: list[dict]) -> None:
-    """Every transition the learner assembled is the environment's step with that key."""
-    by_key = {r["key"]: r for r in env_rows}
+    """Every transition the learner assembled is the environment's step with that key (and
+    environment of the batch)."""
+    by_key = {(r["key"], r["env"]): r for r in env_rows}
     assert transitions, "the learner assembled no transitions"
     for tr in transitions:
-        env = by_key[tr["key"]]
+        env = by_key[tr["key"], tr["env"]]
         for field in ("prev_key", "action", "extrinsic", "classical", "terminated", "truncated", "obs", "next_obs"):
             assert tr[field] == env[field], f"{field} of transition {tr['key']}: {tr[field]} != {env[field]}"
 
@@ -265,8 +274,10 @@ def train_to_the_end_aligned(tmp_path: Path, episodes: int = 5, **graph) -> dict
     return json.loads((tmp_path / "run" / "summary.json").read_text())
 
 
-def test_learner_killed_and_restarted_resumes_aligned(domain, backend, tmp_path):
-    sup = start_graph(tmp_path, episodes=10, respawn=True)
+@pytest.mark.parametrize("num_envs", [1, 4], ids=["one-env", "batch-of-4"])
+def test_learner_killed_and_restarted_resumes_aligned(domain, backend, tmp_path, num_envs):
+    """kill -9 of the learner mid-run, also with a batched group."""
+    sup = start_graph(tmp_path, episodes=10, respawn=True, num_envs=num_envs)
     status = tmp_path / "run" / "status.json"
     try:
         wait_for(lambda: status.exists() and json.loads(status.read_text())["episodes"] >= 3, 120,
@@ -282,6 +293,44 @@ def test_learner_killed_and_restarted_resumes_aligned(domain, backend, tmp_path)
     check_env_log_replays_in_process(env_rows)
     check_transitions_match_env(transitions, env_rows)
     assert "resumed from" in (tmp_path / "logs" / "learner.log").read_text()
+
+
+def test_batched_group_trains_records_and_aligns(domain, backend, tmp_path):
+    """One environment node steps 4 environments as a batch: every transition is its
+    environment's step, the learner's bag holds the batched messages, and ``bag info`` and
+    the bag reader take each environment's episodes from them."""
+    bag = tmp_path / "learner-bag"
+    summary = train_to_the_end_aligned(tmp_path, episodes=12, num_envs=4, learner={"record": str(bag)})
+    assert summary["episodes"] == 12 and summary["updates"] > 0
+    group = summary["groups"]["/"]
+    assert group["num_envs"] == 4 and group["lost_episodes"] == 0 and group["rejected"] == 0
+    transitions = read_jsonl(tmp_path / "transitions.jsonl")
+    assert {t["env"] for t in transitions} == {0, 1, 2, 3}
+    info = episode_summary(bag)["/"]
+    assert info["num_envs"] == 4 and info["episodes"] >= 12
+    cfg = build_config([tmp_path / "run" / "config-in.yaml"])
+    episodes = list(read_episodes([bag], cfg, 2))
+    assert len(episodes) == info["episodes"]
+    assert sum(len(sub.fields["action"]) for _, sub, _, _ in episodes) <= len(transitions)
+
+
+def test_nodes_of_a_group_with_different_num_envs_stop_with_exit_2(domain, backend, tmp_path):
+    """An environment of 4 and a sub-controller of 1: the sub-controller exits 2 naming both
+    values, and never answers (no misaligned transitions)."""
+    common = ["--ros-args", "-p", "algo:=drqn", "-p", "epsilon:=1.0"]
+    env = subprocess.Popen([sys.executable, "-m", "hdrqn_ros.nodes.environment", *common, "-p", "num_envs:=4"],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        sub = subprocess.run([sys.executable, "-c", "import sys; from hdrqn_ros.nodes.controllers import main_sub "
+                              "as m; sys.exit(m())", *common], capture_output=True, text=True, timeout=60)
+    finally:
+        env.terminate()
+        env.wait(10)
+    assert sub.returncode == 2, sub.stderr
+    assert "steps of 4 environment(s)" in sub.stderr and "num_envs 1" in sub.stderr
+    bad = subprocess.run([sys.executable, "-m", "hdrqn_ros.nodes.environment", *common, "-p", "num_envs:=0"],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "num_envs must be in 1..64, got 0" in bad.stderr
 
 
 def test_sub_controller_drives_cmd_vel_from_a_costmap(domain, backend, tmp_path):
@@ -423,14 +472,16 @@ def test_malformed_messages_are_rejected_and_logged(domain, backend, tmp_path):
 
 
 @NO_RCLPY
-@pytest.mark.parametrize("cyclone_nodes", [("environment", "critic"), ("meta_controller", "sub_controller", "learner")],
-                         ids=["env-critic-on-cyclone", "controllers-learner-on-cyclone"])
-def test_mixed_graph_trains_aligned(domain, tmp_path, cyclone_nodes):
+@pytest.mark.parametrize("cyclone_nodes,num_envs", [(("environment", "critic"), 1),
+                                                    (("meta_controller", "sub_controller", "learner"), 1),
+                                                    (("environment", "critic"), 4)],
+                         ids=["env-critic-on-cyclone", "controllers-learner-on-cyclone", "env-critic-on-cyclone-4-envs"])
+def test_mixed_graph_trains_aligned(domain, tmp_path, cyclone_nodes, num_envs):
     """Half the graph on the Cyclone backend, the other half on rclpy: training runs end to end
-    and every transition the learner assembled is the environment's step."""
+    and every transition the learner assembled is the environment's step (also for a batch)."""
     nodes = ("environment", "critic", "meta_controller", "sub_controller", "learner")
     middleware = {n: "cyclone" if n in cyclone_nodes else "rclpy" for n in nodes}
-    summary = train_to_the_end_aligned(tmp_path, middleware=middleware)
+    summary = train_to_the_end_aligned(tmp_path, middleware=middleware, num_envs=num_envs)
     assert summary["episodes"] == 5 and summary["updates"] > 0
     for node, backend in middleware.items():  # each process really ran on its backend
         log = (tmp_path / "logs" / f"{'learner' if node == 'learner' else 'graph_' + node}.log").read_text()

@@ -11,10 +11,13 @@ Runs real node processes on the loopback interface (its own domain id), once per
    alike; the mean per backend is reported. Targets: >= 500 steps/s; rclpy >= 0.9x Cyclone.
 2. training: the whole graph (``hdrqn up``'s processes) with the thesis update ratio
    (one update of each controller every 5 env steps) vs the in-process ``Trainer``
-   with the same config, both measured after warm-up. Target: graph >= 0.9x.
+   with the same config, both measured after warm-up, for each ``--num-envs`` N (the
+   environment node steps N environments as one batch; the trainer steps N too).
+   Targets: graph >= 0.9x the best in-process rate; with batches, graph >= 1.0x the
+   in-process trainer at the same N (``graph_vs_inprocess_same_n``).
 
 Prints one JSON object. Usage: ``python benchmarks/bench_graph.py [--seconds 60]
-[--rounds 2] [--backends rclpy,cyclone] [--no-training]``.
+[--rounds 2] [--backends rclpy,cyclone] [--num-envs 1,16] [--no-training] [--no-acting]``.
 """
 from __future__ import annotations
 
@@ -80,14 +83,15 @@ def _config(episodes: int, num_envs: int = 1):
 
 
 def graph_training_rate(seconds: float, tmp: Path, backend: str, groups: int = 1,
-                        learner: dict | None = None) -> dict:
-    """Env steps/s and updates/s of the whole graph on ``backend``, measured after 50 updates."""
+                        learner: dict | None = None, num_envs: int = 1) -> dict:
+    """Env steps/s and updates/s of the whole graph on ``backend`` (``num_envs`` per
+    environment node), measured after 50 updates."""
     cfg = _config(100_000)
-    run = tmp / f"graph{groups}-{backend}"
+    run = tmp / f"graph{groups}x{num_envs}-{backend}"
     run.mkdir()
     cfg_file = run / "in.yaml"
     cfg_file.write_text(json.dumps(cfg.model_dump()))
-    params = write_params(cfg, run, groups, cfg_file, extra={"learner": learner or {}})
+    params = write_params(cfg, run, groups, cfg_file, extra={"learner": learner or {}}, num_envs=num_envs)
     sup = Supervisor(graph_processes(cfg, params, groups, respawn=False), env={BACKEND_ENV: backend},
                      log_dir=run / "logs")
     sup.start()
@@ -143,7 +147,10 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=2, help="acting measurements per backend and group count")
     ap.add_argument("--backends", default=None, help="comma-separated, of rclpy and cyclone (default: those installed)")
     ap.add_argument("--no-training", action="store_true", help="acting only")
+    ap.add_argument("--no-acting", action="store_true", help="training only")
+    ap.add_argument("--num-envs", default="1,16", help="comma-separated batch sizes for the training comparison")
     args = ap.parse_args()
+    num_envs = [int(n) for n in args.num_envs.split(",")]
     backends = args.backends.split(",") if args.backends else ["rclpy", "cyclone"] if rclpy_available() else ["cyclone"]
     if not set(backends) <= {"rclpy", "cyclone"} or args.rounds < 1:
         ap.error(f"--backends must name rclpy and/or cyclone (got {args.backends!r}), --rounds >= 1")
@@ -153,33 +160,42 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         out: dict = {"machine_cores": os.cpu_count(), "seconds": args.seconds, "backends": backends}
-        for groups in (1, 2):
+        for groups in () if args.no_acting else (1, 2):
             samples: dict[str, list[float]] = {b: [] for b in backends}
             for k, backend in enumerate(_rounds(backends, args.rounds)):
                 samples[backend].append(acting_rate(min(args.seconds, 20.0), tmp / f"acting{groups}-{k}", backend, groups))
                 print(f"acting, {groups} group(s), {backend}: {samples[backend][-1]:.1f} steps/s", file=sys.stderr)
             out[f"acting_{groups}group_steps_per_s"] = {b: _mean(v) for b, v in samples.items()}
             out[f"acting_{groups}group_rounds"] = {b: [round(x, 1) for x in v] for b, v in samples.items()}
-        out["acting_target"] = 500
-        best = max(max(out[f"acting_{g}group_steps_per_s"].values()) for g in (1, 2))
-        out["acting_ratio"] = round(best / 500, 2)
-        if len(backends) == 2:
+        if not args.no_acting:
+            out["acting_target"] = 500
+            best = max(max(out[f"acting_{g}group_steps_per_s"].values()) for g in (1, 2))
+            out["acting_ratio"] = round(best / 500, 2)
+        if len(backends) == 2 and not args.no_acting:
             for g in (1, 2):
                 rate = out[f"acting_{g}group_steps_per_s"]
                 out[f"rclpy_vs_cyclone_acting_{g}group"] = round(rate["rclpy"] / rate["cyclone"], 2)
             out["rclpy_vs_cyclone_target"] = 0.9
         if not args.no_training:
-            graph = {b: graph_training_rate(args.seconds, tmp, b) for b in backends}
-            out["graph_steps_per_s"] = {b: g["steps_per_s"] for b, g in graph.items()}
-            out["graph_updates_per_s"] = {b: g["updates_per_s"] for b, g in graph.items()}
-            for n in (1, 16):
-                out[f"inprocess_n{n}_steps_per_s"] = round(inprocess_training_rate(args.seconds, tmp, n), 1)
-            inproc = max(out["inprocess_n1_steps_per_s"], out["inprocess_n16_steps_per_s"])
-            out["graph_vs_inprocess_best"] = {b: round(r / inproc, 2) for b, r in out["graph_steps_per_s"].items()}
+            inproc = {n: round(inprocess_training_rate(args.seconds, tmp, n), 1) for n in sorted({1, 16, *num_envs})}
+            for n, rate in inproc.items():
+                out[f"inprocess_n{n}_steps_per_s"] = rate
+            graph = {n: {b: graph_training_rate(args.seconds, tmp, b, num_envs=n) for b in backends} for n in num_envs}
+            for n, by_backend in graph.items():
+                print(f"training, graph of {n} env(s): {by_backend}", file=sys.stderr)
+            out["graph_steps_per_s"] = {f"n{n}": {b: g["steps_per_s"] for b, g in by.items()} for n, by in graph.items()}
+            out["graph_updates_per_s"] = {f"n{n}": {b: g["updates_per_s"] for b, g in by.items()}
+                                          for n, by in graph.items()}
+            best_inproc = max(inproc[1], inproc[16])
+            best_graph = {b: max(graph[n][b]["steps_per_s"] for n in num_envs) for b in backends}
+            out["graph_vs_inprocess_best"] = {b: round(r / best_inproc, 2) for b, r in best_graph.items()}
             out["training_target"] = 0.9
+            out["graph_vs_inprocess_same_n"] = {f"n{n}": {b: round(g["steps_per_s"] / inproc[n], 2) for b, g in by.items()}
+                                                for n, by in graph.items()}
+            out["same_n_target"] = 1.0
             if len(backends) == 2:
-                out["rclpy_vs_cyclone_training"] = round(out["graph_steps_per_s"]["rclpy"]
-                                                         / out["graph_steps_per_s"]["cyclone"], 2)
+                out["rclpy_vs_cyclone_training"] = {f"n{n}": round(by["rclpy"]["steps_per_s"] / by["cyclone"]["steps_per_s"], 2)
+                                                    for n, by in graph.items()}
     print(json.dumps(out, indent=2))
 
 

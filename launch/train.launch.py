@@ -58,8 +58,9 @@ def _graph(context):
 
     actions = [LogInfo(msg=f"hdrqn_ros training graph: {algo}, {groups} group(s) {namespaces}, "
                            f"params {params_file}, respawn {respawn}")]
+    num_envs = int_arg(context, "num_envs", 1)
     for i, ns in enumerate(namespaces):
-        group = {**shared, "seed": seed + 1000 * i}
+        group = {**shared, "seed": seed + 1000 * i, **({"num_envs": num_envs} if num_envs is not None else {})}
         actions.append(Node(package=PACKAGE, executable="environment", name="environment", namespace=ns,
                             parameters=[params_file, {**group, "wait_for_learner": True}],
                             respawn=respawn, respawn_delay=RESPAWN_DELAY_S, output="screen"))
@@ -103,6 +104,9 @@ def generate_launch_description() -> LaunchDescription:
                               description="ROS 2 parameters file for all nodes (/** shared, then per node)"),
         DeclareLaunchArgument("groups", default_value="1",
                               description="environment groups (environment + controllers each) feeding the learner"),
+        DeclareLaunchArgument("num_envs", default_value="",
+                              description="environments each environment node steps as one batch, 1..64 "
+                                          "(empty: params file, else 1)"),
         DeclareLaunchArgument("algo", default_value="",
                               description=f"agent: {', '.join(ALGOS)} (empty: params file, else {DEFAULT_ALGO})"),
         DeclareLaunchArgument("env", default_value="",

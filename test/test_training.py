@@ -244,6 +244,7 @@ def test_meta_never_picks_the_subgoal_it_stands_on():
     (["train", "--num-envs", "100000"], "num_envs: Input should be less than or equal to 4096"),
     (["train", "--set", "eval_episodes=1000000"], "eval_episodes: Input should be less than or equal to 100000"),
     (["up", "--groups", "65"], "--groups must be in 1..64"),
+    (["up", "--num-envs", "0"], "--num-envs must be in 1..64"),
     (["eval", "--checkpoint", "x.pt", "--num-envs", "5000"], "--num-envs must be in 1..4096"),
 ])
 def test_oversized_batches_and_graphs_are_refused(argv, message, tmp_path, capsys):

@@ -33,7 +33,7 @@ from hdrqn_ros.middleware.messages import DecodeError, decode, message_class
 from hdrqn_ros.middleware.port import ParameterError, RosArgsError
 from hdrqn_ros.middleware.ros_args import check_parameter_type, load_params_file, remap_and_resolve, split_ros_args
 from hdrqn_ros.nodes import nav
-from hdrqn_ros.protocol import wire
+from hdrqn_ros.protocol import follower, wire
 from hdrqn_ros.protocol.assembly import TransitionAssembler
 from hdrqn_ros.recording.bag import TYPESTORE, BagError, bag_summary, bag_topics, read_messages, repair_bag
 from hdrqn_ros.recording.transitions import (GROUP_TOPICS, BagRecorder, RosbagsMessages, bag_config, episode_summary,
@@ -401,6 +401,34 @@ def test_the_learner_holds_a_first_step_only_with_the_controllers_answers():
         first = first or wire.read_steps(msg)
         held.append(asm.holds_answers(first))
     assert held == [False, False, False, False, False, True]
+
+
+def test_a_late_input_is_waited_for_and_a_lost_one_given_up_after_a_later_step_is_complete():
+    """DDS repairs a lost sample of one topic while the others flow on: the learner keeps
+    the later steps queued until the late sample comes. One that never comes is given up
+    once a later step has been complete for ``LOST_AFTER_S``: its episode is lost, the next
+    ones are assembled."""
+    episodes = VALID_EPISODES * 4
+    stream = group_stream(episodes)
+    late = next(i for i, (topic, _) in enumerate(stream) if topic == wire.ACTION)  # episode 0's first action
+    for lost in (False, True):
+        finished = []
+        asm = TransitionAssembler("/", CFG, NUM_SUBGOALS, finished.append, logger=LOG)
+        handlers = asm.inputs()
+        for topic, msg in stream[:late] + stream[late + 1:]:
+            if topic in handlers:
+                handlers[topic][1](msg)
+        assert finished == [] and asm.assembled_env_steps == 0  # everything waits for the missing action
+        asm.check_stall(now=100.0)  # later steps are complete from here on
+        asm.check_stall(now=100.0 + follower.LOST_AFTER_S - 0.5)
+        assert finished == [] and asm.lost_episodes == 0
+        if not lost:
+            handlers[wire.ACTION][1](stream[late][1])
+            assert len(finished) == len(episodes) and asm.lost_episodes == 0
+        else:
+            asm.check_stall(now=100.0 + follower.LOST_AFTER_S)
+            assert len(finished) == len(episodes) - 1 and asm.lost_episodes == 1
+        assert asm.assembled_env_steps == sum(map(len, episodes))
 
 
 def test_batched_records_split_into_the_single_environment_ones():

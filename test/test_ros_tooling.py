@@ -29,7 +29,7 @@ from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 
 from hdrqn_ros.middleware.rclpy_backend import RclpyMiddleware, RclpyNode  # noqa: E402
-from hdrqn_ros.nodes import controllers, environment, learner, nav  # noqa: E402
+from hdrqn_ros.nodes import controllers, critic, environment, learner, nav  # noqa: E402
 from hdrqn_ros.nodes.common import ENV_DEFAULTS  # noqa: E402
 from hdrqn_ros.protocol import wire  # noqa: E402
 from hdrqn_ros.supervisor import Supervisor  # noqa: E402
@@ -43,7 +43,7 @@ allows, so every node stays up while it is probed."""
 NODES = ("environment", "critic", "meta_controller", "sub_controller", "learner")
 DECLARED = {
     "environment": environment.PARAMETERS,
-    "critic": ENV_DEFAULTS,
+    "critic": critic.PARAMETERS,
     "meta_controller": {**controllers.CONTROLLER_PARAMETERS, **nav.META_PARAMETERS},
     "sub_controller": {**controllers.CONTROLLER_PARAMETERS, **nav.SUB_PARAMETERS, "subgoal_table": ""},
     "learner": learner.PARAMETERS,

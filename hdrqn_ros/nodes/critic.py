@@ -20,11 +20,14 @@ from hdrqn_ros.protocol import wire
 from hdrqn_ros.nodes.common import ENV_DEFAULTS, check_num_envs, env_kwargs, run_node
 from hdrqn_ros.protocol.follower import StepFollower, done
 
+PARAMETERS = {**ENV_DEFAULTS, "num_envs": 1}
+"""What the critic declares: the environment's settings and the group's batch size."""
+
 
 class CriticNode(StepFollower):
     def __init__(self, mw: Middleware):
         node = mw.create_node("critic")
-        params = node.declare_parameters({**ENV_DEFAULTS, "num_envs": 1})
+        params = node.declare_parameters(PARAMETERS)
         n = check_num_envs(params["num_envs"])
         super().__init__(node, num_envs=n)
         probe = make_batch(params["env"], 1, **env_kwargs(params["env"], params["view"]))

@@ -33,6 +33,22 @@ def _critic_of(step: dict, critic: dict) -> dict:
     return critic
 
 
+class _Prefixed:
+    """A logger whose lines start with ``prefix`` (which group and environment they are about)."""
+
+    def __init__(self, logger, prefix: str):
+        self.logger, self.prefix = logger, prefix
+
+    def info(self, msg: str, *args) -> None:
+        self.logger.info(self.prefix + msg, *args)
+
+    def warning(self, msg: str, *args) -> None:
+        self.logger.warning(self.prefix + msg, *args)
+
+    def error(self, msg: str, *args) -> None:
+        self.logger.error(self.prefix + msg, *args)
+
+
 class TransitionAssembler(Decoder):
     """One environment group's messages -> :class:`StepRecord` rows -> replay episodes.
 
@@ -50,6 +66,8 @@ class TransitionAssembler(Decoder):
         self.num_actions = batch_class(cfg.env).num_actions
         self.envs: list[EnvAssembler] = []  # one per environment, made when the first message says how many
         self.env_steps_seen = 0  # the env node's own step count, from its latest env_step
+        if node is not None:
+            node.create_timer(1.0, self.check_stall)
 
     def topic(self, name: str) -> str:
         return f"{self.ns}/{name}"
@@ -71,7 +89,7 @@ class TransitionAssembler(Decoder):
     def _group_of(self, n: int, topic: str) -> list["EnvAssembler"]:
         """The group's assemblers, made for ``n`` environments if there are none yet."""
         if not self.envs:
-            self.envs = [EnvAssembler(self, i, node=self.node if i == 0 else None) for i in range(n)]
+            self.envs = [EnvAssembler(self, i) for i in range(n)]
         elif n != len(self.envs):
             raise wire.ProtocolError(f"{topic} holds {n} environment(s)' data, the group's messages so far "
                                      f"{len(self.envs)}")
@@ -143,6 +161,18 @@ class TransitionAssembler(Decoder):
         """Called for every well-formed step (its ``env_step`` records) on arrival."""
         self.env_steps_seen = int(rows[0]["env_steps"])
 
+    def check_stall(self, now: float | None = None) -> None:
+        """Every second: each environment's :meth:`StepFollower.check_stall`."""
+        for env in self.envs:
+            env.check_stall(now)
+
+    @property
+    def assembled_env_steps(self) -> int | None:
+        """The env node's step count at the last step every environment's assembler has
+        processed (``None`` before one has)."""
+        done_at = [env.processed_env_steps for env in self.envs]
+        return None if not done_at or None in done_at else min(done_at)
+
     def holds_answers(self, rows: list[dict]) -> bool:
         """Whether the assemblers hold a step's observations and the controllers' answers to
         it (:meth:`EnvAssembler.holds_answers`, for every environment of ``rows``)."""
@@ -180,8 +210,8 @@ class EnvAssembler(StepFollower):
 
     skip_stale = False  # a transition needs every step of its episode
 
-    def __init__(self, group: TransitionAssembler, index: int, node=None):
-        super().__init__(node, logger=group.logger)
+    def __init__(self, group: TransitionAssembler, index: int):
+        super().__init__(logger=_Prefixed(group.logger, f"group {group.ns or '/'} env {index}: "))
         self.group, self.index = group, index
         self.spec = group.spec
         cfg = group.cfg

@@ -12,6 +12,7 @@ environment node steps (``num_envs``; one by default); they share the step key.
 """
 from __future__ import annotations
 
+import time
 from collections import OrderedDict, deque
 from typing import Any, Callable
 
@@ -20,6 +21,12 @@ from hdrqn_ros.throttle import Throttle
 
 DEFAULT_CAPACITY = 512
 """Keys kept per input topic, steps queued, and replies remembered (each bounded)."""
+STALL_REPORT_S = 5.0
+"""A step waiting this long at the head of the queue is reported (and again each period)."""
+LOST_AFTER_S = 10.0
+"""A follower that keeps stale steps (the learner) gives up on a step whose inputs have not
+come while a later step has been complete this long: they were lost. DDS repairs a reliable
+sample within a few heartbeats (Fast DDS: 3 s each), so a repair is never taken for a loss."""
 
 
 class KeyedInbox:
@@ -107,9 +114,11 @@ class StepFollower(Decoder):
         self.queue: deque[list[dict]] = deque()
         self.replies: OrderedDict[int, list] = OrderedDict()
         self.last_key = 0
-        self._head_seen: int | None = None
+        self.processed_env_steps: int | None = None  # the env node's step count at the last step processed
+        self._head: tuple[int | None, float] = (None, 0.0)  # the waiting head's key, and when it was reported
+        self._complete_since: float | None = None  # since when a later step is complete and the head is not
         if node is not None:
-            node.create_timer(5.0, self._report_stall)
+            node.create_timer(1.0, self.check_stall)
 
     # -- inputs ----------------------------------------------------------------------------------
     def on_env_step(self, msg) -> None:
@@ -140,7 +149,8 @@ class StepFollower(Decoder):
         self.queue.append(rows)
         if len(self.queue) > self.capacity:
             dropped = self.queue.popleft()
-            self.logger.warning("inputs for step key %d never arrived; skipping it", int(dropped[0]["key"]))
+            self.logger.warning("inputs for step key %d never arrived (%s); skipping it", int(dropped[0]["key"]),
+                                self._holding(dropped[0]))
         self.pump()
 
     def put(self, topic: str, key: int, value: Any) -> None:
@@ -166,21 +176,48 @@ class StepFollower(Decoder):
             while len(self.replies) > 8:
                 self.replies.popitem(last=False)
             self.last_key = key
+            self.processed_env_steps = int(rows[0]["env_steps"])
             self.inbox.forget_before(min((int(row["prev_key"]) for row in rows if row["prev_key"]), default=key))
 
     def received(self, rows: list[dict]) -> None:
         """Called for every well-formed step (its ``env_step`` records) on arrival (before ordering)."""
 
-    def _report_stall(self) -> None:
-        """Log once per 5 s while the same step waits at the head of the queue."""
-        head = int(self.queue[0][0]["key"]) if self.queue else None
-        if head is not None and head == self._head_seen:
-            step = self.queue[0][0]
-            have = sorted(t for t, slot in self.inbox.slots.items() if head in slot or int(step["prev_key"]) in slot)
-            self.logger.warning("step key %d (t=%d, episode %d) still waits for its inputs; have %s for it or "
-                                "its previous step %d; %d steps queued", head, step["t"], step["episode"],
-                                have, int(step["prev_key"]), len(self.queue))
-        self._head_seen = head
+    def check_stall(self, now: float | None = None) -> None:
+        """Called every second: report a step waiting at the head (every
+        :data:`STALL_REPORT_S`), and in a follower that keeps stale steps, give up on it once
+        a later step has been complete for :data:`LOST_AFTER_S` (``now``: monotonic s)."""
+        now = time.monotonic() if now is None else now
+        if not self.queue or self.ready(self.queue[0]):
+            self._head, self._complete_since = (None, now), None
+            return
+        step = self.queue[0][0]
+        head = int(step["key"])
+        if head != self._head[0]:
+            self._head, self._complete_since = (head, now), None
+        elif now - self._head[1] >= STALL_REPORT_S:
+            self._head = (head, now)
+            self.logger.warning("step key %d (t=%d, episode %d) still waits for its inputs (%s); %d steps queued",
+                                head, step["t"], step["episode"], self._holding(step), len(self.queue))
+        if self.skip_stale:
+            return
+        complete = next((i for i, rows in enumerate(self.queue) if i and self.ready(rows)), 0)
+        if not complete:
+            self._complete_since = None
+        elif self._complete_since is None:
+            self._complete_since = now
+        elif now - self._complete_since >= LOST_AFTER_S:
+            for _ in range(complete):
+                lost = self.queue.popleft()[0]
+                self.logger.warning("inputs for step key %d never arrived (%s) while a later step was complete "
+                                    "for %.0f s; skipping it", int(lost["key"]), self._holding(lost), LOST_AFTER_S)
+            self._complete_since = None
+            self.pump()
+
+    def _holding(self, step: dict) -> str:
+        """What the inbox holds for ``step`` and for its previous step, by topic."""
+        key, prev = int(step["key"]), int(step["prev_key"])
+        return (f"have {sorted(t for t, slot in self.inbox.slots.items() if key in slot)} for it, "
+                f"{sorted(t for t, slot in self.inbox.slots.items() if prev in slot)} for its previous step {prev}")
 
     def ready(self, rows: list[dict]) -> bool:
         raise NotImplementedError
@@ -193,6 +230,7 @@ class StepFollower(Decoder):
         self.inbox.clear()
         self.replies.clear()
         self.last_key = 0
+        self.processed_env_steps = None
 
 
 def done(step: dict) -> bool:

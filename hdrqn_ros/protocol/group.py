@@ -10,8 +10,15 @@ from typing import Protocol
 from hdrqn_ros.middleware.port import LATCHED_QOS
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.assembly import TransitionAssembler
+from hdrqn_ros.protocol.follower import DEFAULT_CAPACITY
 from hdrqn_ros.training.episodes import FinishedEpisode
 from hdrqn_ros.training.learner import Learner
+
+
+MAX_LAG = DEFAULT_CAPACITY // 2
+"""Steps of the environment node the env may run ahead of what the learner has assembled:
+while DDS repairs a lost sample of one topic the others flow on, and the queue waiting for
+it must not overflow (see :data:`~hdrqn_ros.protocol.follower.LOST_AFTER_S`)."""
 
 
 class Recorder(Protocol):
@@ -73,12 +80,16 @@ class GroupAssembler(TransitionAssembler):
         Without credit the env re-publishes its step after ``action_timeout`` and the
         controllers their answers, which the late subscription then gets.
 
-        ``window`` is in steps of the environment node: a batch of N environments may take
-        ``window * N`` env steps ahead."""
+        Credit runs ``window`` steps of the environment node ahead of what the learner has
+        received, and at most :data:`MAX_LAG` ahead of what it has assembled (a batch of N
+        environments: N env steps per step)."""
         if not self.synced and self.first_step is not None:
             self.synced = self.holds_answers(self.first_step)
-        ahead = window * max(1, len(self.envs))
-        credit = self.env_steps_seen + ahead if owed_ok and self.synced else self.env_steps_seen
+        n = max(1, len(self.envs))
+        credit = self.env_steps_seen + window * n if owed_ok and self.synced else self.env_steps_seen
+        assembled = self.assembled_env_steps
+        if assembled is not None:
+            credit = min(credit, max(assembled + MAX_LAG * n, self.env_steps_seen))
         values = (credit, round(eps[0], 4), round(eps[1], 4))
         if values == self.last_credit and not force:
             return

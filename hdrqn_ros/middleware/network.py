@@ -30,6 +30,12 @@ from pathlib import Path
 
 from hdrqn_ros.middleware.port import ParameterError
 
+SOCKET_BUFFER_BYTES = 4 * 1024 * 1024
+"""Fast DDS's UDP socket buffers (send and receive), in both profiles. With the system's
+default (about 208 KiB) a batched group's samples (``num_envs`` 16: 93 KB observations,
+186 KB subgoal images, each several 64 KB datagrams) overflow the receive buffer; the lost
+fragments wait for a heartbeat and acting fell to 125 env steps/s (2,244 with 4 MiB;
+Cyclone: 2,102). The kernel caps the size at ``net.core.rmem_max`` / ``wmem_max``."""
 LOOPBACK = "lo"
 LOOPBACK_ADDRESS = "127.0.0.1"
 MAX_PARTICIPANTS = 60
@@ -74,7 +80,9 @@ def fastdds_interface_profile(address: str) -> str:
     return ('<?xml version="1.0" encoding="UTF-8"?>\n'
             '<dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"><profiles>'
             "<transport_descriptors><transport_descriptor><transport_id>hdrqn_udp</transport_id>"
-            f"<type>UDPv4</type><interfaceWhiteList><address>{address}</address></interfaceWhiteList>"
+            f"<type>UDPv4</type><sendBufferSize>{SOCKET_BUFFER_BYTES}</sendBufferSize>"
+            f"<receiveBufferSize>{SOCKET_BUFFER_BYTES}</receiveBufferSize>"
+            f"<interfaceWhiteList><address>{address}</address></interfaceWhiteList>"
             "</transport_descriptor></transport_descriptors>"
             '<participant profile_name="hdrqn_interface" is_default_profile="true"><rtps>'
             "<userTransports><transport_id>hdrqn_udp</transport_id></userTransports>"

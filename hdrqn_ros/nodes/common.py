@@ -13,8 +13,8 @@ import numpy as np
 
 from hdrqn_ros.deploy.specs import ALGO_SPECS, PolicyError
 from hdrqn_ros.envs.registration import GRID_IDS, MONTEZUMA_IDS, make_batch
-from hdrqn_ros.protocol.wire import MAX_ENVS
 from hdrqn_ros.middleware import BackendError, Middleware, Node, ParameterError, RosArgsError, open_middleware
+from hdrqn_ros.protocol.wire import MAX_ENVS
 
 ENV_DEFAULTS = {"algo": "hdrqn-v2", "env": "hdrqn/GridWorld-2Goals-v0", "view": "5", "seed": 0}
 """Parameters every training-graph node declares (the launch files set them once for all

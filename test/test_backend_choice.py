@@ -84,7 +84,6 @@ def test_network_defaults_of_the_rmw():
     assert apply_rmw_network_defaults("lo", env) == "rmw_fastrtps_cpp on loopback only"
 
 
-@NO_RCLPY
 def test_both_fastdds_profiles_give_udp_the_socket_buffers_batches_need():
     """Batched groups' samples are several 64 KB datagrams: with the system's default
     buffers their fragments overflow and wait for heartbeats (bench: 125 vs 2,158 env steps/s
@@ -97,6 +96,7 @@ def test_both_fastdds_profiles_give_udp_the_socket_buffers_batches_need():
             assert int(transports[0].findtext(f"f:{field}", namespaces=ns)) == SOCKET_BUFFER_BYTES, field
 
 
+@NO_RCLPY
 def test_nodes_and_hdrqn_up_exit_2_on_a_bad_profile(tmp_path):
     bad = tmp_path / "missing.xml"
     env = {"FASTRTPS_DEFAULT_PROFILES_FILE": str(bad), "HDRQN_MIDDLEWARE": "rclpy"}

@@ -34,7 +34,7 @@ SOCKET_BUFFER_BYTES = 4 * 1024 * 1024
 """Fast DDS's UDP socket buffers (send and receive), in both profiles. With the system's
 default (about 208 KiB) a batched group's samples (``num_envs`` 16: 93 KB observations,
 186 KB subgoal images, each several 64 KB datagrams) overflow the receive buffer; the lost
-fragments wait for a heartbeat and acting fell to 125 env steps/s (2,244 with 4 MiB;
+fragments wait for a heartbeat and acting fell to 125 env steps/s (2,158 with 4 MiB;
 Cyclone: 2,102). The kernel caps the size at ``net.core.rmem_max`` / ``wmem_max``."""
 LOOPBACK = "lo"
 LOOPBACK_ADDRESS = "127.0.0.1"

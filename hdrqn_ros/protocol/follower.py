@@ -161,8 +161,7 @@ class StepFollower(Decoder):
     # -- processing ------------------------------------------------------------------------------
     def pump(self) -> None:
         if self.skip_stale and self.queue and not self.ready(self.queue[0]):
-            ready_at = next((i for i, rows in enumerate(self.queue) if i and self.ready(rows)), 0)
-            for _ in range(ready_at):
+            for _ in range(self._first_complete_behind_head()):
                 stale = self.queue.popleft()
                 self.logger.warning("skipping step key %d: a later step is complete, its inputs are not",
                                     int(stale[0]["key"]))
@@ -200,7 +199,7 @@ class StepFollower(Decoder):
                                 head, step["t"], step["episode"], self._holding(step), len(self.queue))
         if self.skip_stale:
             return
-        complete = next((i for i, rows in enumerate(self.queue) if i and self.ready(rows)), 0)
+        complete = self._first_complete_behind_head()
         if not complete:
             self._complete_since = None
         elif self._complete_since is None:
@@ -212,6 +211,10 @@ class StepFollower(Decoder):
                                     "for %.0f s; skipping it", int(lost["key"]), self._holding(lost), LOST_AFTER_S)
             self._complete_since = None
             self.pump()
+
+    def _first_complete_behind_head(self) -> int:
+        """The queue index of the first step after the head that is ready (0: none is)."""
+        return next((i for i, rows in enumerate(self.queue) if i and self.ready(rows)), 0)
 
     def _holding(self, step: dict) -> str:
         """What the inbox holds for ``step`` and for its previous step, by topic."""

@@ -8,7 +8,12 @@ backward (under autograd's engine), optimizer (Adam), gradient clipping, soft ta
 and the rest (both forwards, loss, target maths, and sampling's copies into tensors).
 "python and other" is the update's wall time minus everything the profiler saw (the
 profiler's own cost makes its categories a little larger than the unprofiled update), one
-thread. Prints one JSON object.
+thread. Then the floor that the matrix products set: every matrix product and convolution
+one update calls (forward, target and backward: ``mm``, ``addmm``, ``bmm``, ``convolution``
+and its backward, captured with their exact arguments), each timed again alone, summed
+(``matmul_floor_ms``), with the update's FLOPs (``torch.utils.flop_counter``) and the
+rate a large 1024^3 GEMM reaches (``large_gemm_gflops``): an update made only of these
+calls at these shapes can be no faster than the floor. Prints one JSON object.
 
     python benchmarks/profile_updates.py [--updates 40]
 """
@@ -21,9 +26,54 @@ import time
 
 import torch
 from torch.profiler import ProfilerActivity, profile
+from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils.flop_counter import FlopCounterMode
 
 from bench_training import _config, _prefill  # benchmarks/ is sys.path[0] when run as a script
 from hdrqn_ros.training.learner import build_agent
+
+MATMULS = {torch.ops.aten.mm, torch.ops.aten.addmm, torch.ops.aten.bmm, torch.ops.aten.convolution,
+           torch.ops.aten.convolution_backward}
+"""Operator packets (every overload, ``out=`` ones included) the matmul floor times."""
+
+
+class _CaptureMatmuls(TorchDispatchMode):
+    """Records every matrix product and convolution dispatched, with copies of its arguments."""
+
+    def __init__(self):
+        super().__init__()
+        self.calls = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if func.overloadpacket in MATMULS:
+            copy = lambda a: a.detach().clone() if isinstance(a, torch.Tensor) else a
+            self.calls.append((func, [copy(a) for a in args], {k: copy(v) for k, v in kwargs.items()}))
+        return func(*args, **kwargs)
+
+
+def _large_gemm_gflops(size: int = 1024, reps: int = 20) -> float:
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    ms = _median_ms(lambda: a @ b, reps)
+    return round(2 * size ** 3 / (ms * 1e-3) / 1e9, 1)
+
+
+def matmul_floor(ctrl, reps: int) -> dict:
+    """The update's FLOPs, and the summed time of its matrix products and convolutions,
+    each run alone (median of ``reps``) at the update's exact shapes."""
+    with FlopCounterMode(display=False) as flops:
+        ctrl.update()
+    capture = _CaptureMatmuls()
+    with capture:
+        ctrl.update()
+    floor = 0.0
+    with torch.no_grad():
+        for func, args, kwargs in capture.calls:
+            floor += _median_ms(lambda: func(*args, **kwargs), reps)
+    gflop = flops.get_total_flops() / 1e9
+    return {"update_gflop": round(gflop, 3), "matmul_calls": len(capture.calls), "matmul_floor_ms": round(floor, 3),
+            "matmul_floor_gflops": round(gflop / (floor * 1e-3), 1)}
+
 
 CATEGORIES = ("backward", "optimizer", "grad_clip", "soft_update", "forward_loss_and_target_maths")
 
@@ -80,6 +130,8 @@ def profile_controller(ctrl, updates: int) -> dict:
     out["python_and_other_ms"] = round(out["update_ms"] - sum(totals.values()), 3)
     out["top_ops_ms"] = {a.key: round(a.self_cpu_time_total / 1e3 / updates, 3) for a in sorted(
         prof.key_averages(), key=lambda a: -a.self_cpu_time_total)[:8]}
+    out.update(matmul_floor(ctrl, updates))
+    out["achieved_gflops"] = round(out["update_gflop"] / (out["update_ms"] * 1e-3), 1)
     return out
 
 
@@ -91,7 +143,7 @@ def main() -> None:
     cfg = _config(16)
     agent = build_agent(cfg)
     _prefill(agent, cfg)
-    result = {"threads": torch.get_num_threads(), "updates": args.updates,
+    result = {"threads": torch.get_num_threads(), "updates": args.updates, "large_gemm_gflops": _large_gemm_gflops(),
               "sub": profile_controller(agent.sub, args.updates), "meta": profile_controller(agent.meta, args.updates)}
     print(json.dumps(result, indent=2))
 

@@ -99,6 +99,8 @@ def test_save_replay_false_writes_no_snapshot_and_resumes_empty(tmp_path):
     assert "replay" not in load_checkpoint(tmp_path / "checkpoints" / "last.pt")["progress"]
     resumed = Learner(tiny(episodes=4), tmp_path, resume=True, progress=False, tensorboard=False)
     assert not resumed.replay_restored and all(len(r) == 0 for r in resumed.replays().values())
+    assert resumed.resumed_line().endswith("at episode 2 (%d env steps); no replay snapshot: the replay refills "
+                                           "before updates resume" % resumed.env_steps)
 
 
 def _episodes_logged(run_dir) -> int:
@@ -146,6 +148,8 @@ def test_sigkilled_run_resumes_with_the_replay_of_its_last_checkpoint(tmp_path):
                            str(progress["episodes"] + 2), "--out", str(run_dir), "--resume", *common],
                           capture_output=True, text=True, timeout=300)
     assert more.returncode == 0, more.stderr
+    assert (f"at episode {progress['episodes']} ({progress['env_steps']} env steps); replay restored "
+            f"(sub {held['sub']} episodes, meta {held['meta']} episodes)") in more.stderr
     final = load_checkpoint(ckpt)["progress"]
     assert final["episodes"] == progress["episodes"] + 2
     assert len(snapshots(run_dir)) == 1

@@ -90,6 +90,8 @@ def cmd_train(args) -> int:
         if sink is not None:
             sink.close()
         raise
+    if args.resume:
+        print(trainer.resumed_line(), file=sys.stderr)
     summary = trainer.run()
     if sink is not None:
         print(f"recorded {sink.bag.messages} messages to {sink.path}", file=sys.stderr)

@@ -177,6 +177,13 @@ class Learner:
         if self.replay_restored:
             load_replay_snapshot(self.checkpoint_path.parent / snapshot["file"], self.replays(), snapshot, self._run_id())
 
+    def resumed_line(self) -> str:
+        """One line on what ``--resume`` restored: where the run continues, and its replay."""
+        held = ", ".join(f"{role} {len(replay)} episodes" for role, replay in self.replays().items())
+        replay = f"replay restored ({held})" if self.replay_restored else \
+            "no replay snapshot: the replay refills before updates resume"
+        return f"resumed {self.checkpoint_path} at episode {self.episodes} ({self.env_steps} env steps); {replay}"
+
     def replays(self) -> dict:
         """The agent's replays by role: ``sub`` (a flat agent's one controller) and ``meta``."""
         out = {"sub": self.agent.sub.replay}

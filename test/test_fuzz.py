@@ -36,7 +36,7 @@ from hdrqn_ros.nodes import nav
 from hdrqn_ros.protocol import follower, wire
 from hdrqn_ros.protocol.assembly import TransitionAssembler
 from hdrqn_ros.recording.bag import TYPESTORE, BagError, bag_summary, bag_topics, read_messages, repair_bag
-from hdrqn_ros.recording.transitions import (GROUP_TOPICS, BagRecorder, RosbagsMessages, bag_config, episode_summary,
+from hdrqn_ros.recording.transitions import (GROUP_TOPICS, BagReadStats, BagRecorder, RosbagsMessages, bag_config, episode_summary,
                                              read_episodes, recorded_topics)
 
 QUICK = dict(deadline=None, database=None,
@@ -480,6 +480,30 @@ def write_recording(path: Path, episodes: list[list[dict]], compress: bool = Fal
         bag.write(conns[topic], bytes(TYPESTORE.serialize_cdr(msg, GROUP_TOPICS[topic])))
     bag.close()
     return bag.path
+
+
+def test_a_step_the_learner_gave_up_as_lost_is_given_up_in_its_recording(tmp_path):
+    """The learner node skips a step whose input never came once a later step has been
+    complete for ``LOST_AFTER_S`` (by its clock); reading its recording, the arrival times
+    stand in for that clock, so the later episodes are read as the learner acknowledged
+    them, not held until the queue overflows. A late input within that time is waited for."""
+    episodes = VALID_EPISODES * 4
+    stream = group_stream(episodes)
+    late = next(i for i, (topic, _) in enumerate(stream) if topic == wire.ACTION)  # episode 0's first action
+    for delay_s, expected in ((None, len(episodes) - 1), (follower.LOST_AFTER_S / 2, len(episodes))):
+        arrivals = [(0.25 * i, item) for i, item in enumerate(stream) if i != late]
+        if delay_s is not None:
+            arrivals.append((0.25 * late + delay_s, stream[late]))
+        bag = BagRecorder(tmp_path / f"rec-{delay_s}", CFG, "test_fuzz", compress=False)
+        conns = bag.add_group("/", recorded_topics("hdrqn-v2"))
+        for t, (topic, msg) in sorted(arrivals, key=lambda a: a[0]):
+            bag.writer.write(conns[topic], int(1e18 + t * 1e9), bytes(TYPESTORE.serialize_cdr(msg, GROUP_TOPICS[topic])))
+        bag.close()
+        assert 0.25 * len(stream) > 2 * follower.LOST_AFTER_S  # the recording outlasts the learner's patience
+        stats = BagReadStats()
+        read = list(read_episodes([bag.path], CFG, NUM_SUBGOALS, stats))
+        assert len(read) == expected, (delay_s, len(read))
+        assert sum(stats.incomplete_episodes.values()) == len(episodes) - expected
 
 
 @pytest.fixture(scope="module")

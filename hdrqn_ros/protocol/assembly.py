@@ -161,10 +161,10 @@ class TransitionAssembler(Decoder):
         """Called for every well-formed step (its ``env_step`` records) on arrival."""
         self.env_steps_seen = int(rows[0]["env_steps"])
 
-    def check_stall(self, now: float | None = None) -> None:
+    def check_stall(self, now: float | None = None, report: bool = True) -> None:
         """Every second: each environment's :meth:`StepFollower.check_stall`."""
         for env in self.envs:
-            env.check_stall(now)
+            env.check_stall(now, report)
 
     @property
     def assembled_env_steps(self) -> int | None:

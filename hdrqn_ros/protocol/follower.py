@@ -181,10 +181,11 @@ class StepFollower(Decoder):
     def received(self, rows: list[dict]) -> None:
         """Called for every well-formed step (its ``env_step`` records) on arrival (before ordering)."""
 
-    def check_stall(self, now: float | None = None) -> None:
+    def check_stall(self, now: float | None = None, report: bool = True) -> None:
         """Called every second: report a step waiting at the head (every
-        :data:`STALL_REPORT_S`), and in a follower that keeps stale steps, give up on it once
-        a later step has been complete for :data:`LOST_AFTER_S` (``now``: monotonic s)."""
+        :data:`STALL_REPORT_S`, unless not ``report``), and in a follower that keeps stale
+        steps, give up on it once a later step has been complete for :data:`LOST_AFTER_S`
+        (``now``: monotonic s, or a recording's clock)."""
         now = time.monotonic() if now is None else now
         if not self.queue or self.ready(self.queue[0]):
             self._head, self._complete_since = (None, now), None
@@ -193,7 +194,7 @@ class StepFollower(Decoder):
         head = int(step["key"])
         if head != self._head[0]:
             self._head, self._complete_since = (head, now), None
-        elif now - self._head[1] >= STALL_REPORT_S:
+        elif report and now - self._head[1] >= STALL_REPORT_S:
             self._head = (head, now)
             self.logger.warning("step key %d (t=%d, episode %d) still waits for its inputs (%s); %d steps queued",
                                 head, step["t"], step["episode"], self._holding(step), len(self.queue))

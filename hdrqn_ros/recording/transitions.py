@@ -184,11 +184,21 @@ class TransitionRecorder:
 
 # -- reading ---------------------------------------------------------------------------------------
 class _BagAssembler(TransitionAssembler):
-    """A :class:`TransitionAssembler` for bag data: a malformed message is an error."""
+    """A :class:`TransitionAssembler` for bag data: a malformed message is an error, and the
+    recording's clock (the arrival times) stands in for the learner's 1 s stall timer, so a
+    step the live learner gave up as lost is given up here too, not waited for until the
+    queue overflows."""
 
     def __init__(self, bag: Path, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.bag = bag
+        self._next_tick_ns: int | None = None
+
+    def at(self, timestamp_ns: int) -> None:
+        """The recording's clock reached ``timestamp_ns`` (a message's arrival time)."""
+        if self._next_tick_ns is None or timestamp_ns >= self._next_tick_ns:
+            self.check_stall(now=timestamp_ns / 1e9, report=False)
+            self._next_tick_ns = timestamp_ns + 1_000_000_000
 
     def decode(self, topic, read):
         try:
@@ -262,7 +272,9 @@ def read_episodes(paths, cfg: TrainConfig, num_subgoals: int, stats: BagReadStat
                 handlers[topic] = (type_name, handler)
             assemblers.append(asm)
         key = str(path)
-        for topic, type_name, _t, cdr in read_messages(path, topics=handlers):
+        for topic, type_name, t, cdr in read_messages(path, topics=handlers):
+            for asm in assemblers:
+                asm.at(t)
             try:
                 msg = TYPESTORE.deserialize_cdr(cdr, type_name)
             except Exception as exc:  # truncated or garbled CDR

@@ -165,10 +165,25 @@ def manifest(exp: Experiment, runs: list[RunSpec], out: Path, episodes: int | No
 
 def write_manifest(exp: Experiment, runs: list[RunSpec], out: Path, episodes: int | None,
                    extra_sets: tuple[str, ...] = ()) -> Path:
-    """Write ``out/experiment.json`` (see :func:`manifest`) and return its path."""
+    """Write ``out/experiment.json`` (see :func:`manifest`) and return its path. Runs an
+    earlier invocation listed there with the same budget and ``--set`` items (e.g. other
+    ``--algos`` or ``--seeds``) stay listed, in the experiment's order, so that ``hdrqn
+    plot`` shows the whole experiment."""
     out.mkdir(parents=True, exist_ok=True)
     path = out / "experiment.json"
-    path.write_text(json.dumps(manifest(exp, runs, out, episodes, extra_sets), indent=2))
+    data = manifest(exp, runs, out, episodes, extra_sets)
+    try:
+        earlier = json.loads(path.read_text()) if path.exists() else {}
+    except ValueError:
+        earlier = {}
+    same = isinstance(earlier, dict) and all(earlier.get(k) == data[k] for k in ("experiment", "episodes", "sets"))
+    if same and isinstance(earlier.get("runs"), list):
+        listed = {r["dir"] for r in data["runs"]}
+        merged = data["runs"] + [r for r in earlier["runs"] if isinstance(r, dict) and r.get("dir") not in listed
+                                 and isinstance(r.get("seed"), int)]
+        order = {spec.name: i for i, spec in enumerate(exp.runs(sorted({r["seed"] for r in merged})))}
+        data["runs"] = sorted(merged, key=lambda r: order.get(r["dir"], len(order)))
+    path.write_text(json.dumps(data, indent=2))
     return path
 
 

@@ -58,10 +58,15 @@ def test_experiment_runs_resumes_and_reports(tmp_path):
         assert json.loads((out / run / "summary.json").read_text())["episodes"] == 5
         with open(out / run / "train.csv") as f:
             assert [int(r["episode"]) for r in csv.DictReader(f)] == [1, 2, 3, 4, 5]
+    # another setting, run on its own into the same directory, joins the listed runs
+    other = hdrqn("experiment", *common[:2], "hdqn", *common[3:], "--episodes", "5")
+    assert other.returncode == 0, other.stderr
+    assert [r["dir"] for r in json.loads((out / "experiment.json").read_text())["runs"]] == \
+        ["hdqn-s0", "hdqn-s1", "dqn-s0", "dqn-s1"]
     plot = hdrqn("plot", str(out))
     assert plot.returncode == 0, plot.stderr
     table = (out / "table.md").read_text()
-    assert "| dqn | 2 (2) |" in table
+    assert "| dqn | 2 (2) |" in table and "| hdqn | 2 (2) |" in table
     assert (out / "exp3-gridworld-2goals_fig4_10.png").stat().st_size > 10_000
 
 

@@ -482,28 +482,38 @@ def write_recording(path: Path, episodes: list[list[dict]], compress: bool = Fal
     return bag.path
 
 
-def test_a_step_the_learner_gave_up_as_lost_is_given_up_in_its_recording(tmp_path):
+@pytest.mark.parametrize("case", ["lost", "late", "lost, then a silent gap", "lost, then the recording ends"])
+def test_a_step_the_learner_gave_up_as_lost_is_given_up_in_its_recording(tmp_path, caplog, case):
     """The learner node skips a step whose input never came once a later step has been
-    complete for ``LOST_AFTER_S`` (by its clock); reading its recording, the arrival times
-    stand in for that clock, so the later episodes are read as the learner acknowledged
-    them, not held until the queue overflows. A late input within that time is waited for."""
+    complete for ``LOST_AFTER_S`` by its 1 s timer, which also ticks while nothing arrives;
+    reading its recording, the arrival times drive that timer, so the later episodes are
+    read as the learner acknowledged them, not held until the queue overflows. A late input
+    within that time is waited for. A recording that ends (a killed learner's) before
+    the step was given up gives it up at its end: no input can come any more."""
     episodes = VALID_EPISODES * 4
     stream = group_stream(episodes)
     late = next(i for i, (topic, _) in enumerate(stream) if topic == wire.ACTION)  # episode 0's first action
-    for delay_s, expected in ((None, len(episodes) - 1), (follower.LOST_AFTER_S / 2, len(episodes))):
-        arrivals = [(0.25 * i, item) for i, item in enumerate(stream) if i != late]
-        if delay_s is not None:
-            arrivals.append((0.25 * late + delay_s, stream[late]))
-        bag = BagRecorder(tmp_path / f"rec-{delay_s}", CFG, "test_fuzz", compress=False)
-        conns = bag.add_group("/", recorded_topics("hdrqn-v2"))
-        for t, (topic, msg) in sorted(arrivals, key=lambda a: a[0]):
-            bag.writer.write(conns[topic], int(1e18 + t * 1e9), bytes(TYPESTORE.serialize_cdr(msg, GROUP_TOPICS[topic])))
-        bag.close()
-        assert 0.25 * len(stream) > 2 * follower.LOST_AFTER_S  # the recording outlasts the learner's patience
-        stats = BagReadStats()
+    spacing = {"lost, then the recording ends": 0.01}.get(case, 0.25)  # s between arrivals
+    arrivals = [(spacing * i, item) for i, item in enumerate(stream) if i != late]
+    if case == "late":
+        arrivals.append((spacing * late + follower.LOST_AFTER_S / 2, stream[late]))
+    if case == "lost, then a silent gap":  # nothing arrives for 2 x LOST_AFTER_S after a later step is complete
+        arrivals = [(t + 2 * follower.LOST_AFTER_S * (i > 40), item) for i, (t, item) in enumerate(arrivals)]
+    bag = BagRecorder(tmp_path / "rec", CFG, "test_fuzz", compress=False)
+    conns = bag.add_group("/", recorded_topics("hdrqn-v2"))
+    for t, (topic, msg) in sorted(arrivals, key=lambda a: a[0]):
+        bag.writer.write(conns[topic], int(1e18 + t * 1e9), bytes(TYPESTORE.serialize_cdr(msg, GROUP_TOPICS[topic])))
+    bag.close()
+    stats = BagReadStats()
+    with caplog.at_level(logging.WARNING):
         read = list(read_episodes([bag.path], CFG, NUM_SUBGOALS, stats))
-        assert len(read) == expected, (delay_s, len(read))
-        assert sum(stats.incomplete_episodes.values()) == len(episodes) - expected
+    expected = len(episodes) - (case != "late")
+    assert len(read) == expected, len(read)
+    assert sum(stats.incomplete_episodes.values()) == len(episodes) - expected
+    given_up = [r.getMessage() for r in caplog.records if "never arrived" in r.getMessage()]
+    assert bool(given_up) == (case != "late"), given_up
+    why = "before the recording ends" if case.endswith("ends") else "while a later step was complete"
+    assert all(why in line for line in given_up), given_up
 
 
 @pytest.fixture(scope="module")

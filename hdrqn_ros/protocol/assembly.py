@@ -166,6 +166,11 @@ class TransitionAssembler(Decoder):
         for env in self.envs:
             env.check_stall(now, report)
 
+    def give_up_waiting(self) -> None:
+        """The end of a recording: each environment's :meth:`StepFollower.give_up_waiting`."""
+        for env in self.envs:
+            env.give_up_waiting()
+
     @property
     def assembled_env_steps(self) -> int | None:
         """The env node's step count at the last step every environment's assembler has

@@ -206,12 +206,23 @@ class StepFollower(Decoder):
         elif self._complete_since is None:
             self._complete_since = now
         elif now - self._complete_since >= LOST_AFTER_S:
-            for _ in range(complete):
-                lost = self.queue.popleft()[0]
-                self.logger.warning("inputs for step key %d never arrived (%s) while a later step was complete "
-                                    "for %.0f s; skipping it", int(lost["key"]), self._holding(lost), LOST_AFTER_S)
-            self._complete_since = None
-            self.pump()
+            self._give_up(complete, f"while a later step was complete for {LOST_AFTER_S:.0f} s")
+
+    def give_up_waiting(self) -> None:
+        """The end of a recording: give up every step that keeps a later complete one
+        waiting (no input can come any more; a running learner would have after
+        :data:`LOST_AFTER_S`)."""
+        while complete := self._first_complete_behind_head():
+            self._give_up(complete, "before the recording ends")
+
+    def _give_up(self, count: int, why: str) -> None:
+        """Drop the ``count`` steps at the head of the queue as lost, then process what is ready."""
+        for _ in range(count):
+            lost = self.queue.popleft()[0]
+            self.logger.warning("inputs for step key %d never arrived (%s) %s; skipping it", int(lost["key"]),
+                                self._holding(lost), why)
+        self._complete_since = None
+        self.pump()
 
     def _first_complete_behind_head(self) -> int:
         """The queue index of the first step after the head that is ready (0: none is)."""

@@ -185,9 +185,10 @@ class TransitionRecorder:
 # -- reading ---------------------------------------------------------------------------------------
 class _BagAssembler(TransitionAssembler):
     """A :class:`TransitionAssembler` for bag data: a malformed message is an error, and the
-    recording's clock (the arrival times) stands in for the learner's 1 s stall timer, so a
-    step the live learner gave up as lost is given up here too, not waited for until the
-    queue overflows."""
+    recording's clock (the arrival times) drives the learner's 1 s stall timer, through the
+    silent gaps too, so a step the live learner gave up as lost is given up here as well,
+    not waited for until the queue overflows; at the recording's end every step that still
+    keeps a complete one waiting is given up (:meth:`give_up_waiting`)."""
 
     def __init__(self, bag: Path, *args, **kwargs):
         super().__init__(*args, **kwargs)
@@ -195,10 +196,13 @@ class _BagAssembler(TransitionAssembler):
         self._next_tick_ns: int | None = None
 
     def at(self, timestamp_ns: int) -> None:
-        """The recording's clock reached ``timestamp_ns`` (a message's arrival time)."""
-        if self._next_tick_ns is None or timestamp_ns >= self._next_tick_ns:
-            self.check_stall(now=timestamp_ns / 1e9, report=False)
-            self._next_tick_ns = timestamp_ns + 1_000_000_000
+        """The recording's clock reached ``timestamp_ns`` (a message's arrival time): the
+        timer ticks due since the last message, each at its own time."""
+        tick = timestamp_ns if self._next_tick_ns is None else self._next_tick_ns
+        while tick <= timestamp_ns:
+            self.check_stall(now=tick / 1e9, report=False)
+            tick += 1_000_000_000
+        self._next_tick_ns = tick
 
     def decode(self, topic, read):
         try:
@@ -272,6 +276,11 @@ def read_episodes(paths, cfg: TrainConfig, num_subgoals: int, stats: BagReadStat
                 handlers[topic] = (type_name, handler)
             assemblers.append(asm)
         key = str(path)
+
+        def taken() -> Iterator[FinishedEpisode]:
+            while finished:
+                stats.episodes[key] = stats.episodes.get(key, 0) + 1
+                yield finished.pop(0)
         for topic, type_name, t, cdr in read_messages(path, topics=handlers):
             for asm in assemblers:
                 asm.at(t)
@@ -280,9 +289,10 @@ def read_episodes(paths, cfg: TrainConfig, num_subgoals: int, stats: BagReadStat
             except Exception as exc:  # truncated or garbled CDR
                 raise BagError(f"{path}: topic {topic}: undecodable {type_name} message ({exc})") from None
             handlers[topic][1](msg)
-            while finished:
-                stats.episodes[key] = stats.episodes.get(key, 0) + 1
-                yield finished.pop(0)
+            yield from taken()
+        for asm in assemblers:
+            asm.give_up_waiting()
+        yield from taken()
         stats.incomplete_episodes[key] = sum(a.lost_episodes + a.open_episodes for a in assemblers)
 
 

@@ -482,7 +482,8 @@ def write_recording(path: Path, episodes: list[list[dict]], compress: bool = Fal
     return bag.path
 
 
-@pytest.mark.parametrize("case", ["lost", "late", "lost, then a silent gap", "lost, then the recording ends"])
+@pytest.mark.parametrize("case", ["lost", "late", "lost, then a silent gap", "lost, then the recording ends",
+                                  "lost, then a gap of years"])
 def test_a_step_the_learner_gave_up_as_lost_is_given_up_in_its_recording(tmp_path, caplog, case):
     """The learner node skips a step whose input never came once a later step has been
     complete for ``LOST_AFTER_S`` by its 1 s timer, which also ticks while nothing arrives;
@@ -497,8 +498,9 @@ def test_a_step_the_learner_gave_up_as_lost_is_given_up_in_its_recording(tmp_pat
     arrivals = [(spacing * i, item) for i, item in enumerate(stream) if i != late]
     if case == "late":
         arrivals.append((spacing * late + follower.LOST_AFTER_S / 2, stream[late]))
-    if case == "lost, then a silent gap":  # nothing arrives for 2 x LOST_AFTER_S after a later step is complete
-        arrivals = [(t + 2 * follower.LOST_AFTER_S * (i > 40), item) for i, (t, item) in enumerate(arrivals)]
+    if case.startswith("lost, then a"):  # nothing arrives for a while after a later step is complete
+        gap_s = 2 * follower.LOST_AFTER_S if case.endswith("silent gap") else 3e8  # 10 years: ticks are skipped
+        arrivals = [(t + gap_s * (i > 40), item) for i, (t, item) in enumerate(arrivals)]
     bag = BagRecorder(tmp_path / "rec", CFG, "test_fuzz", compress=False)
     conns = bag.add_group("/", recorded_topics("hdrqn-v2"))
     for t, (topic, msg) in sorted(arrivals, key=lambda a: a[0]):

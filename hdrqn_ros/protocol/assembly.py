@@ -166,6 +166,11 @@ class TransitionAssembler(Decoder):
         for env in self.envs:
             env.check_stall(now, report)
 
+    @property
+    def waiting(self) -> bool:
+        """Some environment's :attr:`StepFollower.waiting`."""
+        return any(env.waiting for env in self.envs)
+
     def give_up_waiting(self) -> None:
         """The end of a recording: each environment's :meth:`StepFollower.give_up_waiting`."""
         for env in self.envs:

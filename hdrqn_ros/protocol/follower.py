@@ -224,6 +224,11 @@ class StepFollower(Decoder):
         self._complete_since = None
         self.pump()
 
+    @property
+    def waiting(self) -> bool:
+        """A step is queued whose inputs have not all come (the stall timer has work)."""
+        return bool(self.queue) and not self.ready(self.queue[0])
+
     def _first_complete_behind_head(self) -> int:
         """The queue index of the first step after the head that is ready (0: none is)."""
         return next((i for i, rows in enumerate(self.queue) if i and self.ready(rows)), 0)

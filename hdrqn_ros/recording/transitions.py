@@ -197,11 +197,15 @@ class _BagAssembler(TransitionAssembler):
 
     def at(self, timestamp_ns: int) -> None:
         """The recording's clock reached ``timestamp_ns`` (a message's arrival time): the
-        timer ticks due since the last message, each at its own time."""
+        timer ticks due since the last message, each at its own time; while no step waits
+        a tick changes nothing, so the ticks of a long gap are skipped to its last one."""
+        second = 1_000_000_000
         tick = timestamp_ns if self._next_tick_ns is None else self._next_tick_ns
         while tick <= timestamp_ns:
+            if not self.waiting:
+                tick += (timestamp_ns - tick) // second * second
             self.check_stall(now=tick / 1e9, report=False)
-            tick += 1_000_000_000
+            tick += second
         self._next_tick_ns = tick
 
     def decode(self, topic, read):

@@ -5,7 +5,7 @@ from setuptools import find_packages, setup
 
 PACKAGE = "hdrqn_ros"
 ROS_WHEELS = ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-std-msgs", "ros-jazzy-sensor-msgs", "ros-jazzy-geometry-msgs",
-              "ros-jazzy-nav-msgs", "ros-jazzy-rosgraph-msgs"]
+              "ros-jazzy-nav-msgs", "ros-jazzy-rosgraph-msgs", "ros-jazzy-std-srvs"]
 
 setup(
     name=PACKAGE,
@@ -61,6 +61,8 @@ setup(
             "sub_controller = hdrqn_ros.nodes.controllers:main_sub",
             "learner = hdrqn_ros.nodes.learner:main",
             "player = hdrqn_ros.nodes.player:main",
+            "robot_environment = hdrqn_ros.nodes.robot_environment:main",
+            "loopback_robot = hdrqn_ros.nodes.loopback_robot:main",
         ],
     },
 )

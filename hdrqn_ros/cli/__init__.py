@@ -23,6 +23,7 @@ from hdrqn_ros.cli.common import UsageError
 from hdrqn_ros.cli.experiment import add_envs, add_experiment, add_plot, cmd_envs, cmd_experiment, cmd_plot
 from hdrqn_ros.cli.export import add_export, cmd_export
 from hdrqn_ros.cli.graph import MAX_GROUPS, add_up, cmd_up
+from hdrqn_ros.cli.robot import add_robot, cmd_robot
 from hdrqn_ros.cli.train import add_eval, add_train, cmd_eval, cmd_train
 
 EPILOG = """examples:
@@ -46,13 +47,13 @@ def build_parser() -> argparse.ArgumentParser:
         description="Hierarchical deep recurrent Q-learning (hDRQN) on partially observable hierarchical tasks.")
     parser.add_argument("--version", action="version", version=f"hdrqn_ros {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for add in (add_train, add_up, add_eval, add_export, add_experiment, add_plot, add_bag, add_envs):
+    for add in (add_train, add_up, add_eval, add_robot, add_export, add_experiment, add_plot, add_bag, add_envs):
         add(sub)
     return parser
 
 
 COMMANDS = {"train": cmd_train, "up": cmd_up, "eval": cmd_eval, "export": cmd_export, "experiment": cmd_experiment,
-            "plot": cmd_plot, "bag": cmd_bag, "envs": cmd_envs}
+            "plot": cmd_plot, "bag": cmd_bag, "envs": cmd_envs, "robot": cmd_robot}
 
 
 def _interrupt(signum, frame):

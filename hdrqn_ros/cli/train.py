@@ -60,6 +60,9 @@ def add_eval(sub) -> None:
     parser.add_argument("--subgoals", action="store_true",
                         help="also report, per subgoal, how often the options aimed at it reached it (from its "
                              "neighbours and from anywhere) and the steps spent at each subgoal")
+    parser.add_argument("--no-fire", action="store_true",
+                        help="gridworld domains: no fire (the layouts of agent and goals stay the seed's), as on "
+                             "the loopback robot (`hdrqn robot`)")
     parser.add_argument("--record", metavar="BAG_DIR", help="record the episodes' transitions to this new bag")
 
 
@@ -138,7 +141,7 @@ def cmd_eval(args) -> int:
     from collections import Counter
 
     from hdrqn_ros.config import MAX_ENVS
-    from hdrqn_ros.envs.registration import make_batch
+    from hdrqn_ros.envs.registration import GRID_IDS, make_batch
     from hdrqn_ros.training.learner import load_trained_agent, play, summarise
     from hdrqn_ros.training.subgoals import option_table, option_table_markdown
 
@@ -150,6 +153,10 @@ def cmd_eval(args) -> int:
         if value is not None and not 0.0 <= value <= 1.0:  # also NaN
             raise UsageError(f"{flag} must be in [0, 1], got {value}")
     cfg, agent = load_trained_agent(args.checkpoint)
+    if args.no_fire:
+        if cfg.env not in GRID_IDS:
+            raise UsageError(f"--no-fire is for the gridworld domains; this agent was trained on {cfg.env}")
+        cfg = cfg.model_copy(update={"env_kwargs": {**cfg.env_kwargs, "obstacles": False}})
     sink = None
     if args.record:
         from hdrqn_ros.recording.transitions import TransitionRecorder

@@ -28,7 +28,9 @@ class GridWorldBatch:
     Parameters: ``layout`` 'gridworld' or 'fourrooms'; ``n_goals`` 2 or 3; ``view`` the
     side of the agent-centred window in cells (3, 5, 11) or ``'full'`` (the whole map,
     allocentric); ``max_steps`` the step limit (default 50, or 100 for three goals in
-    four-rooms).
+    four-rooms); ``obstacles`` False: no fires (the layouts of agent and goals stay those
+    the same seed draws with fires: the fires' cells are drawn and left free; for
+    comparing with a robot, which has no fire).
 
     Stepping an environment whose episode is over raises ``RuntimeError`` (there is no
     auto-reset; use :meth:`reset_where`). Env ``i`` of a batch reset with seed ``s`` draws
@@ -38,7 +40,7 @@ class GridWorldBatch:
     num_actions = len(ACTIONS)
 
     def __init__(self, num_envs: int = 1, layout: str = "gridworld", n_goals: int = 2, view=5,
-                 max_steps: int | None = None):
+                 max_steps: int | None = None, obstacles: bool = True):
         if isinstance(num_envs, (bool, np.bool_)) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if layout not in LAYOUTS:
@@ -58,6 +60,9 @@ class GridWorldBatch:
         # every goal can be walked to from every other one
         self.subgoal_neighbours = tuple(tuple(h for h in range(G) if h != g) for g in range(G))
         self.max_steps = int(max_steps)
+        if not isinstance(obstacles, (bool, np.bool_)):
+            raise ValueError(f"obstacles must be true or false, got {obstacles!r}")
+        self.num_obstacles = NUM_OBSTACLES if obstacles else 0
         self.walls = layout_walls(layout)
 
         base = np.full(CANVAS_CELLS, OUTSIDE, dtype=np.uint8)
@@ -76,7 +81,7 @@ class GridWorldBatch:
         self._rgb = np.tile(self._base_rgb, (N, 1))  # (N*441, 3)
         self._agent = np.zeros(N, dtype=np.intp)
         self._goals = np.zeros((N, G), dtype=np.intp)
-        self._fires = np.zeros((N, NUM_OBSTACLES), dtype=np.intp)
+        self._fires = np.zeros((N, self.num_obstacles), dtype=np.intp)
         self._mask = np.zeros(N, dtype=np.int64)  # goals collected, bit g: goal g (see GoalRules)
         self._in_order = np.ones(N, dtype=bool)
         self._t = np.zeros(N, dtype=np.int64)
@@ -97,7 +102,7 @@ class GridWorldBatch:
 
     @property
     def obstacle_pos(self) -> np.ndarray:
-        """``(N, 2, 2) int32``: (row, col) of each obstacle (fire)."""
+        """``(N, num_obstacles, 2) int32``: (row, col) of each obstacle (fire; none without obstacles)."""
         return self._rowcol(self._fires)
 
     @property
@@ -164,7 +169,7 @@ class GridWorldBatch:
         G = self.n_goals
         rng = self._rngs[i]
         cells = self._free_cells[rng.choice(len(self._free_cells), size=1 + G + NUM_OBSTACLES, replace=False)]
-        self._place(i, int(cells[0]), cells[1:1 + G], cells[1 + G:], np.zeros(G, dtype=bool))
+        self._place(i, int(cells[0]), cells[1:1 + G], cells[1 + G:1 + G + self.num_obstacles], np.zeros(G, dtype=bool))
 
     def _place(self, i, agent, goals, fires, collected) -> None:
         """Rebuild env ``i``'s canvas from positions (padded flat indices)."""
@@ -186,7 +191,8 @@ class GridWorldBatch:
 
     def set_state(self, i: int, agent, goals, obstacles, collected=None, steps: int = 0) -> None:
         """Put env ``i`` in a hand-built state (for tests and demos): ``agent`` (row, col),
-        ``goals`` ``n_goals`` (row, col), ``obstacles`` two (row, col), ``collected`` which
+        ``goals`` ``n_goals`` (row, col), ``obstacles`` two (row, col) (none without
+        obstacles), ``collected`` which
         goals are already collected (``in_order`` is set as if they were collected in order
         when they form a prefix). All cells must be distinct free cells (a collected goal's
         cell may hold another object)."""
@@ -196,8 +202,8 @@ class GridWorldBatch:
         agent = np.asarray(agent, dtype=np.intp).reshape(2)
         if goals.shape != (G, 2):
             raise ValueError(f"goals must be {G} (row, col) pairs, got shape {goals.shape}")
-        if obstacles.shape != (NUM_OBSTACLES, 2):
-            raise ValueError(f"obstacles must be {NUM_OBSTACLES} (row, col) pairs, got shape {obstacles.shape}")
+        if obstacles.shape != (self.num_obstacles, 2):
+            raise ValueError(f"obstacles must be {self.num_obstacles} (row, col) pairs, got shape {obstacles.shape}")
         collected = np.zeros(G, dtype=bool) if collected is None else np.asarray(collected, dtype=bool).reshape(G)
         live = [tuple(agent)] + [tuple(p) for p in obstacles] + [tuple(g) for g, c in zip(goals, collected) if not c]
         all_cells = live + [tuple(g) for g in goals]

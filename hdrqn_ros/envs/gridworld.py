@@ -39,10 +39,11 @@ class GridWorldEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 8}
 
     def __init__(self, layout: str = "gridworld", n_goals: int = 2, view=5, max_steps: int | None = None,
-                 render_mode: str | None = None):
+                 render_mode: str | None = None, obstacles: bool = True):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        self.batch = GridWorldBatch(1, layout=layout, n_goals=n_goals, view=view, max_steps=max_steps)
+        self.batch = GridWorldBatch(1, layout=layout, n_goals=n_goals, view=view, max_steps=max_steps,
+                                    obstacles=obstacles)
         self.render_mode = render_mode
         self.observation_space = gym.spaces.Box(0, 255, (OBS_SIZE, OBS_SIZE, 3), np.uint8)
         self.action_space = gym.spaces.Discrete(4)

@@ -118,6 +118,8 @@ class _Timer:
 class CycloneNode(Node):
     """A node on the process's DDS participant (ROS 2 nodes share their context's participant)."""
 
+    backend_name = "Cyclone DDS"
+
     def __init__(self, middleware: "CycloneMiddleware", name: str, namespace: str):
         self.middleware = middleware
         self.name, self.namespace = name, namespace or "/"

@@ -90,6 +90,15 @@ class Node(ABC):
     def create_timer(self, period_s: float, callback: Callable[[], None]) -> Any:
         """``callback()`` every ``period_s`` seconds (wall time) on the spinning thread."""
 
+    def create_service(self, type_name: str, name: str, callback: Callable[[Any, Any], Any]) -> Any:
+        """A service server of ``type_name`` (``"std_srvs/srv/Trigger"``): ``callback(request,
+        response)`` fills and returns the response, on the spinning thread. Only rclpy has
+        services: elsewhere :class:`BackendError` names the backend and the service."""
+        raise BackendError(f"the {self.backend_name} backend offers no ROS 2 services: {self.resolve_topic(name)} "
+                           f"({type_name}) needs the rclpy backend")
+
+    backend_name = "this"
+
     @abstractmethod
     def declare_parameters(self, defaults: dict[str, Any],
                            overrides: dict[str, Any] | None = None) -> dict[str, Any]:

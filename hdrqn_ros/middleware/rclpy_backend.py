@@ -87,6 +87,20 @@ def _message_class(type_name: str) -> type:
                          f"module {pkg}.msg (is the package built and sourced?)") from None
 
 
+@lru_cache(maxsize=None)
+def _service_class(type_name: str) -> type:
+    """The rosidl Python class for ``"pkg/srv/Type"``."""
+    parts = type_name.split("/")
+    if len(parts) != 3 or parts[1] != "srv" or not all(parts):
+        raise ValueError(f"service type {type_name!r} is not of the form 'pkg/srv/Type'")
+    pkg, _, name = parts
+    try:
+        return getattr(importlib.import_module(f"{pkg}.srv"), name)
+    except (ImportError, AttributeError):
+        raise ValueError(f"unknown service type {type_name!r}: no class {name} in the Python "
+                         f"module {pkg}.srv (is the package built and sourced?)") from None
+
+
 def _qos_profile(qos: QoS) -> QoSProfile:
     """Our :class:`QoS` as an rclpy profile (history is always keep-last)."""
     return QoSProfile(
@@ -124,6 +138,8 @@ class _RcutilsHandler(logging.Handler):
 
 class RclpyNode(Node):
     """A :class:`Node` backed by an ``rclpy.node.Node``."""
+
+    backend_name = "rclpy"
 
     def __init__(self, node: rclpy.node.Node, max_message_bytes: int) -> None:
         self._node = node
@@ -180,6 +196,9 @@ class RclpyNode(Node):
             callback(msg)
 
         return self._node.create_subscription(cls, topic, on_sample, _qos_profile(qos), raw=True)
+
+    def create_service(self, type_name: str, name: str, callback: Callable[[Any, Any], Any]) -> Any:
+        return self._node.create_service(_service_class(type_name), name, callback)
 
     def create_timer(self, period_s: float, callback: Callable[[], None]) -> Any:
         """A timer on the steady clock: wall time as the port says, even with ``use_sim_time``."""

@@ -13,6 +13,8 @@ With ``num_envs`` > 1 both act on the environment node's whole batch in one forw
 """
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from hdrqn_ros.agents.policy import HierarchicalPolicy
@@ -22,19 +24,22 @@ from hdrqn_ros.middleware import LATCHED_QOS, Middleware
 from hdrqn_ros.nodes import nav
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, check_num_envs, make_acting_network, run_node
+from hdrqn_ros.nodes.ros_time import RosTime
 from hdrqn_ros.protocol.follower import StepFollower, all_done, done
 from hdrqn_ros.training.checkpoint import CheckpointError
 
 _ONE = np.ones(1, bool)  # the rows mask of a free-running (costmap) sub-controller's one environment
 
 CONTROLLER_PARAMETERS = {**ENV_DEFAULTS, "epsilon": -1.0, "checkpoint": "", "policy": "", "meta_state": "c",
-                         "num_envs": 1}
+                         "num_envs": 1, "use_sim_time": False, "quiet_input_s": 10.0}
 """``epsilon`` < 0: explore with the learner's schedule (1.0 until it is heard from);
 ``checkpoint``: initial weights (``RUN_DIR/checkpoints/last.pt``); ``policy``: instead, an
 exported policy directory (``hdrqn export``; torch-free, frozen; its algo, sizes and
 hDRQNv2 ``meta_state`` must be the node's); ``meta_state``: which LSTM state hDRQNv2's
 meta-controller reads, ``c`` or ``h``; ``num_envs``: the environment node's batch size
-(the same on every node of a group). The Nav2 adapters add
+(the same on every node of a group); ``quiet_input_s``: wall seconds without any input
+after which the node says (once per quiet spell) what it waits for and which node would
+publish it; ``use_sim_time``: ROS time from ``/clock`` (the stale-input check). The Nav2 adapters add
 :data:`~hdrqn_ros.nodes.nav.META_PARAMETERS` / :data:`~hdrqn_ros.nodes.nav.SUB_PARAMETERS`."""
 
 
@@ -50,6 +55,12 @@ class _Controller(StepFollower):
         super().__init__(node, num_envs=n)
         if params["meta_state"] not in ("c", "h"):
             raise NodeConfigError(f"meta_state must be 'c' or 'h', got {params['meta_state']!r}")
+        if not params["quiet_input_s"] > 0:
+            raise NodeConfigError(f"quiet_input_s must be > 0, got {params['quiet_input_s']!r}")
+        self.clock = RosTime(node, params["use_sim_time"])
+        self.heard: dict[str, tuple[float, str]] = {}  # input -> (last heard, wall s; who publishes it)
+        self.quiet_reported: set[str] = set()
+        node.create_timer(1.0, self._report_quiet_inputs)
         self.net = make_acting_network(node, self.role, params, default_epsilon=1.0)
         self.spec = ALGO_SPECS[params["algo"]]
         # this node's level of the policy, for the environments of the batch
@@ -57,8 +68,29 @@ class _Controller(StepFollower):
         self.policy = HierarchicalPolicy(n, sub, meta, self.spec.meta_input, params["meta_state"])
         self.every_env = np.ones(n, bool)
         if params.get("observation_source", "topic") == "topic":  # lock-step with the environment node
-            node.create_subscription(wire.FLOATS, wire.ENV_STEP, self.on_env_step, wire.STEP_QOS)
+            self.expect(wire.ENV_STEP, "the environment node (environment, or robot_environment on a robot)")
+            node.create_subscription(wire.FLOATS, wire.ENV_STEP, self._on_env_step, wire.STEP_QOS)
         node.create_subscription(wire.FLOATS, wire.CREDIT, self._on_credit, LATCHED_QOS)
+
+    def expect(self, topic: str, publisher: str) -> None:
+        """``topic`` is an input published by ``publisher``: report when none comes."""
+        self.heard[topic] = (time.monotonic(), publisher)
+
+    def hear(self, topic: str) -> None:
+        self.heard[topic] = (time.monotonic(), self.heard[topic][1])
+        self.quiet_reported.discard(topic)
+
+    def _report_quiet_inputs(self) -> None:
+        now = time.monotonic()
+        for topic, (last, publisher) in self.heard.items():
+            if now - last >= self.params["quiet_input_s"] and topic not in self.quiet_reported:
+                self.quiet_reported.add(topic)
+                self.node.logger.warning("nothing on %s for %.0f s: waiting for %s", self.node.resolve_topic(topic),
+                                         now - last, publisher)
+
+    def _on_env_step(self, msg) -> None:
+        self.hear(wire.ENV_STEP)
+        self.on_env_step(msg)
 
     def _on_credit(self, msg) -> None:
         credit = self.decode(wire.CREDIT, lambda: wire.read_record(msg, wire.CREDIT_FIELDS))
@@ -102,7 +134,7 @@ class SubControllerNode(_Controller):
     ``subgoal`` (its image is the costmap window centred on the subgoal table's pose)."""
 
     role = "sub"
-    nav_parameters = {**nav.SUB_PARAMETERS, "subgoal_table": ""}
+    nav_parameters = {**nav.SUB_PARAMETERS, "subgoal_table": "", "stale_after_s": 5.0}
 
     def __init__(self, mw: Middleware):
         super().__init__(mw, "sub_controller")
@@ -117,6 +149,12 @@ class SubControllerNode(_Controller):
         self.actions = nav.ActionTable.load(params["action_table"], self.net.num_actions) \
             if params["action_table"] else None
         self.pub_cmd = node.create_publisher(self.actions.type_name, params["cmd_vel_topic"]) if self.actions else None
+        if not params["stale_after_s"] > 0:
+            raise NodeConfigError(f"stale_after_s must be > 0, got {params['stale_after_s']!r}")
+        self.observed_ns: int | None = None  # ROS time the last observation arrived
+        self.moving = False  # the last command published was not the zero one
+        if self.pub_cmd is not None:
+            node.create_timer(0.05, self._stop_if_stale)
         self.goals = nav.SubgoalTable.load(params["subgoal_table"], self.net.num_subgoals) \
             if params["subgoal_table"] else None
         self.free_subgoal = -1  # costmap mode: the latest subgoal heard
@@ -128,21 +166,49 @@ class SubControllerNode(_Controller):
                                       f"got {self.num_envs}")
             if not params["view"].isdigit():
                 raise NodeConfigError(f"observation_source costmap needs a numeric view, got {params['view']!r}")
+            self.expect(params["costmap_topic"], "the robot's local costmap (Nav2's local_costmap, costmap_topic)")
             node.create_subscription(nav.OCCUPANCY_GRID, params["costmap_topic"], self._on_costmap, LATCHED_QOS)
         elif source != "topic":
             raise NodeConfigError(f"observation_source must be 'topic' or 'costmap', got {source!r}")
         else:
-            node.create_subscription(wire.IMAGE, wire.OBSERVATION, lambda m: self._on_image(wire.OBSERVATION, m),
-                                     wire.STEP_QOS)
+            node.create_subscription(wire.IMAGE, wire.OBSERVATION, self._on_observation, wire.STEP_QOS)
         self.acted_key = 0  # the last step key this node chose an action for
         if self.spec.hierarchical:
+            if source == "costmap":
+                self.expect(wire.SUBGOAL, "the meta_controller")
             node.create_subscription(wire.INTS, wire.SUBGOAL, self._on_subgoal, wire.STEP_QOS)
             if source == "topic":
                 node.create_subscription(wire.FLOATS, wire.CRITIC, self._on_critic, wire.STEP_QOS)
                 node.create_subscription(wire.IMAGE, wire.SUBGOAL_IMAGES, lambda m: self._on_image(
                     wire.SUBGOAL_IMAGES, m, OBS_SIZE * self.net.num_subgoals), wire.STEP_QOS)
 
+    def _on_observation(self, msg) -> None:
+        self.observed_ns = self.clock.now_ns()
+        self._on_image(wire.OBSERVATION, msg)
+
+    def _command(self, action: int | None, stamp=(0, 0)):
+        """The velocity command of ``action`` (``None``: the zero command); remembers whether it moves."""
+        msg = self.actions.stop_msg(self.node, stamp) if action is None else \
+            self.actions.twist_msg(self.node, action, stamp)
+        self.moving = action is not None and any(self.actions.commands[action].values())
+        return msg
+
+    def stop(self, why: str) -> None:
+        """Publish the zero command (once while stopped), saying why."""
+        if self.pub_cmd is not None and self.moving:
+            self.pub_cmd.publish(self._command(None))
+            self.node.logger.info("zero command on %s: %s", self.node.resolve_topic(self.params["cmd_vel_topic"]), why)
+
+    def _stop_if_stale(self) -> None:
+        now = self.clock.now_ns()
+        if self.moving and now is not None and self.observed_ns is not None and \
+                now - self.observed_ns > self.params["stale_after_s"] * 1e9:
+            self.stop(f"the observation is {(now - self.observed_ns) / 1e9:.1f} s old "
+                      f"(stale_after_s {self.params['stale_after_s']})")
+
     def _on_subgoal(self, msg) -> None:
+        if self.params["observation_source"] == "costmap":
+            self.hear(wire.SUBGOAL)
         chosen = self.decode(wire.SUBGOAL, lambda: wire.read_subgoals(msg, self.net.num_subgoals, self.num_envs))
         if chosen is None:
             return
@@ -154,9 +220,11 @@ class SubControllerNode(_Controller):
     def _on_costmap(self, msg) -> None:
         """Free-running: act on each costmap update (no environment node, no lock-step)."""
         view = int(self.params["view"])
+        self.hear(self.params["costmap_topic"])
         obs = self.decode(self.params["costmap_topic"], lambda: nav.costmap_to_observation(msg, view_cells=view))
         if obs is None:
             return
+        self.observed_ns = self.clock.now_ns()
         self.costmaps += 1
         key = wire.key_of(msg.header.stamp) or self.costmaps
         x = obs
@@ -172,7 +240,7 @@ class SubControllerNode(_Controller):
         action = int(self.policy.act(x[None], self.net.epsilon, self.net.rng)[0])
         self.pub_action.publish(wire.make_record(self.node, wire.INTS, wire.ACTION_FIELDS, [key, action]))
         if self.pub_cmd is not None:
-            self.pub_cmd.publish(self.actions.twist_msg(self.node, action, key))
+            self.pub_cmd.publish(self._command(action, key))
 
     def received(self, rows: list[dict]) -> None:
         """hDRQNv2: where an option may end, hand the meta-controller our LSTM state after the
@@ -199,6 +267,8 @@ class SubControllerNode(_Controller):
         """One action per environment (-1 where its episode ended at this step); nothing
         when every episode ended."""
         if all_done(rows):
+            if self.pub_cmd is not None:  # the episode ended: stop the robot
+                return [(self.pub_cmd, self._command(None, int(rows[0]["key"])))]
             return []
         key = int(rows[0]["key"])
         obs = self.inbox.get(wire.OBSERVATION, key)
@@ -216,16 +286,15 @@ class SubControllerNode(_Controller):
         actions = self.policy.act(x, self.net.epsilon, self.net.rng)
         actions[[done(row) for row in rows]] = -1
         self.acted_key = key
-        replies = [(self.pub_action, wire.make_records(self.node, wire.INTS, wire.ACTION_FIELDS,
-                                                       [[key, a] for a in actions]))]
-        if self.pub_cmd is not None:
-            replies.append((self.pub_cmd, self.actions.twist_msg(self.node, int(actions[0]), key)))
+        replies = [(self.pub_cmd, self._command(int(actions[0]), key))] if self.pub_cmd is not None else []
+        replies.append((self.pub_action, wire.make_records(self.node, wire.INTS, wire.ACTION_FIELDS,
+                                                           [[key, a] for a in actions])))
         return replies
 
     def close(self) -> None:
         """Stop the robot: a zero velocity command."""
         if self.pub_cmd is not None:
-            self.pub_cmd.publish(self.actions.stop_msg(self.node))
+            self.pub_cmd.publish(self._command(None))
 
 
 class MetaControllerNode(_Controller):
@@ -240,11 +309,17 @@ class MetaControllerNode(_Controller):
         if not self.spec.hierarchical:
             raise NodeConfigError(f"{self.params['algo']} is a flat agent: it has no meta-controller")
         node, params = self.node, self.params
-        if params["subgoal_table"] and self.num_envs != 1:
-            raise NodeConfigError(f"subgoal_table drives one robot: num_envs must be 1, got {self.num_envs}")
+        places = params["subgoal_table"] or params["subgoal_poses_topic"]
+        if places and self.num_envs != 1:
+            raise NodeConfigError(f"subgoal_table and subgoal_poses_topic drive one robot: num_envs must be 1, "
+                                  f"got {self.num_envs}")
+        if params["subgoal_table"] and params["subgoal_poses_topic"]:
+            raise NodeConfigError("give the places as subgoal_table or as subgoal_poses_topic, not both")
         self.goals = nav.SubgoalTable.load(params["subgoal_table"], self.net.num_subgoals) \
             if params["subgoal_table"] else None
-        self.pub_goal = node.create_publisher(nav.POSE_STAMPED, params["goal_pose_topic"]) if self.goals else None
+        if params["subgoal_poses_topic"]:
+            node.create_subscription(nav.POSE_ARRAY, params["subgoal_poses_topic"], self._on_places, LATCHED_QOS)
+        self.pub_goal = node.create_publisher(nav.POSE_STAMPED, params["goal_pose_topic"]) if places else None
         self.pub_subgoal = node.create_publisher(wire.INTS, wire.SUBGOAL, wire.STEP_QOS)
         node.create_subscription(wire.FLOATS, wire.CRITIC, self._on_critic, wire.STEP_QOS)
         if self.spec.meta_input == "state":
@@ -252,6 +327,13 @@ class MetaControllerNode(_Controller):
         else:
             node.create_subscription(wire.IMAGE, wire.OBSERVATION, lambda m: self._on_image(wire.OBSERVATION, m),
                                      wire.STEP_QOS)
+
+    def _on_places(self, msg) -> None:
+        topic = self.params["subgoal_poses_topic"]
+        places = self.decode(topic, lambda: nav.SubgoalTable.from_pose_array(msg, self.net.num_subgoals,
+                                                                              self.node.resolve_topic(topic)))
+        if places is not None:
+            self.goals = places
 
     def _on_sub_state(self, msg) -> None:
         def read() -> tuple[int, np.ndarray]:
@@ -298,7 +380,7 @@ class MetaControllerNode(_Controller):
         subgoals[starts] = chosen
         replies = [(self.pub_subgoal, wire.make_records(self.node, wire.INTS, wire.SUBGOAL_FIELDS,
                                                         [[key, g, int(s)] for g, s in zip(subgoals, starts)]))]
-        if self.pub_goal is not None:
+        if self.pub_goal is not None and self.goals is not None:
             stamp = wire.Stamp.of(key)
             replies.append((self.pub_goal, self.goals.pose_msg(self.node, int(subgoals[0]), stamp.sec, stamp.nanosec)))
         return replies

@@ -17,11 +17,13 @@ import numpy as np
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.middleware import Middleware
 from hdrqn_ros.protocol import wire
-from hdrqn_ros.nodes.common import ENV_DEFAULTS, check_num_envs, env_kwargs, run_node
+from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, check_num_envs, env_kwargs, run_node
 from hdrqn_ros.protocol.follower import StepFollower, done
 
-PARAMETERS = {**ENV_DEFAULTS, "num_envs": 1}
-"""What the critic declares: the environment's settings and the group's batch size."""
+PARAMETERS = {**ENV_DEFAULTS, "num_envs": 1, "option_timeout": 0.0}
+"""What the critic declares: the environment's settings, the group's batch size and
+``option_timeout``: an option not done this many seconds (of step keys, i.e. ROS time on a
+robot) after it started ends there (0: never; a robot whose navigator cannot reach a place)."""
 
 
 class CriticNode(StepFollower):
@@ -29,6 +31,9 @@ class CriticNode(StepFollower):
         node = mw.create_node("critic")
         params = node.declare_parameters(PARAMETERS)
         n = check_num_envs(params["num_envs"])
+        if not params["option_timeout"] >= 0:
+            raise NodeConfigError(f"option_timeout must be >= 0 s (0: never), got {params['option_timeout']!r}")
+        self.timeout_ns = int(round(params["option_timeout"] * 1e9))
         super().__init__(node, num_envs=n)
         probe = make_batch(params["env"], 1, **env_kwargs(params["env"], params["view"]))
         self.critic, self.num_subgoals = probe.critic(), probe.num_subgoals
@@ -62,6 +67,8 @@ class CriticNode(StepFollower):
                 verdict = [key, 0.0, 0.0, float(row["decision_point"] or done(row)), -1.0]
             else:
                 verdict = [key, result.intrinsic[i], result.reached[i], result.option_done[i], self.option_subgoal[i]]
+                if self.timeout_ns and key - self.choice_at[i] >= self.timeout_ns:  # ran out of time
+                    verdict[3] = 1.0
             if verdict[3] and not done(row):
                 self.choice_at[i], self.option_subgoal[i] = key, -1
             values.append(verdict)

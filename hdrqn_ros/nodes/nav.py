@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrqn_ros.envs.gridworld import AGENT, FREE, GOAL0, GOAL_NAMES, PALETTE, WALL
+from hdrqn_ros.envs.gridworld import AGENT, FREE, GOAL0, GOAL_NAMES, OUTSIDE, PALETTE, WALL
 from hdrqn_ros.middleware.arrays import as_array
 from hdrqn_ros.yaml_files import read_mapping
 
@@ -19,8 +19,14 @@ POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 TWIST = "geometry_msgs/msg/Twist"
 TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
-META_PARAMETERS = {"subgoal_table": "", "goal_pose_topic": "goal_pose"}
-"""Suggested meta_controller parameters (defaults) for the Nav2 path; '' = not used."""
+POSE_ARRAY = "geometry_msgs/msg/PoseArray"
+POSE_TYPES = {"odometry": "nav_msgs/msg/Odometry", "pose": POSE_STAMPED,
+              "pose_with_covariance": "geometry_msgs/msg/PoseWithCovarianceStamped"}
+"""The robot pose messages a robot-side node reads (``pose_type``): ``/odom``, a
+``PoseStamped``, ``/amcl_pose``."""
+META_PARAMETERS = {"subgoal_table": "", "subgoal_poses_topic": "", "goal_pose_topic": "goal_pose"}
+"""meta_controller parameters (defaults) for the Nav2 path; '' = not used. The places come
+from a YAML ``subgoal_table`` or a latched ``geometry_msgs/PoseArray`` on ``subgoal_poses_topic``."""
 SUB_PARAMETERS = {"action_table": "", "cmd_vel_topic": "cmd_vel", "observation_source": "topic",
                   "costmap_topic": "/local_costmap/costmap"}
 """Suggested sub_controller parameters; ``observation_source``: 'topic' (the env's) or 'costmap'."""
@@ -84,6 +90,21 @@ def _time(node, stamp):
     return node.msg("builtin_interfaces/msg/Time")(sec=int(sec), nanosec=int(nsec))
 
 
+def yaw_of(q) -> float:
+    """Rotation about z (rad) of a ``geometry_msgs/Quaternion``."""
+    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+
+
+def robot_pose(msg) -> tuple[float, float, float]:
+    """``(x, y, yaw)`` (m, rad) of any :data:`POSE_TYPES` message; :class:`NavConfigError`
+    for a non-finite pose."""
+    pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
+    values = (float(pose.position.x), float(pose.position.y), yaw_of(pose.orientation))
+    if not all(math.isfinite(v) for v in values):
+        raise NavConfigError(f"pose is not finite: x, y, yaw = {values}")
+    return values
+
+
 class SubgoalTable:
     """One goal pose ``(x, y, yaw)`` in ``frame_id`` per subgoal index (for Nav2's ``goal_pose``)."""
 
@@ -95,6 +116,19 @@ class SubgoalTable:
         data = _read(path, {"frame_id", "subgoals"}, {"subgoals"})
         entries = _entries(path, data, "subgoals", _POSE_KEYS, {"x", "y"}, num_subgoals)
         return cls([(e["x"], e["y"], e.get("yaw", 0.0)) for e in entries], data.get("frame_id", "map"), str(path))
+
+    @classmethod
+    def from_pose_array(cls, msg, num_subgoals: int, source: str) -> "SubgoalTable":
+        """The table a ``geometry_msgs/PoseArray`` holds (one pose per subgoal, in its
+        header's frame), e.g. a robot's places published on a latched topic."""
+        if len(msg.poses) != num_subgoals:
+            raise NavConfigError(f"{source}: {len(msg.poses)} poses but the agent has {num_subgoals} subgoals")
+        poses = [(float(p.position.x), float(p.position.y), yaw_of(p.orientation)) for p in msg.poses]
+        if not all(math.isfinite(v) for pose in poses for v in pose):
+            raise NavConfigError(f"{source}: a pose is not finite: {poses}")
+        if not msg.header.frame_id:
+            raise NavConfigError(f"{source}: header.frame_id is empty")
+        return cls(poses, msg.header.frame_id, source)
 
     def __len__(self) -> int:
         return len(self.poses)
@@ -154,7 +188,8 @@ class ActionTable:
 
 
 def costmap_to_observation(msg, robot_xy=None, view_cells: int = 5, size: int = 44, *, robot_yaw=None,
-                           cell_size_m: float | None = None, lethal: int = LETHAL, goals_xy=()) -> np.ndarray:
+                           cell_size_m: float | None = None, lethal: int = LETHAL, goals_xy=(), agent_xy=None,
+                           unknown: str = "wall") -> np.ndarray:
     """``(size, size, 3) uint8``: a gridworld-style observation of an OccupancyGrid.
 
     A ``view_cells`` x ``view_cells`` window of simulator cells of side ``cell_size_m``
@@ -165,8 +200,13 @@ def costmap_to_observation(msg, robot_xy=None, view_cells: int = 5, size: int = 
     else free (max aggregation). The centre cell shows the agent. ``robot_yaw=None``: image
     up = costmap +y (north-up, like the simulator's allocentric moves); a yaw (rad): image
     up = the robot's heading (egocentric). ``goals_xy``: optional ``(x, y)`` of subgoal
-    ``g = 0, 1, ...`` (costmap frame), drawn in goal ``g``'s colour when inside the window.
-    The costmap origin's orientation is assumed identity (as Nav2 publishes it).
+    ``g = 0, 1, ...`` (costmap frame; ``None``: not drawn, e.g. collected), drawn in goal
+    ``g``'s colour when inside the window. ``agent_xy``: where the agent is drawn (default
+    the centre cell; elsewhere only when inside the window: a window centred on a subgoal).
+    ``unknown``: how a cell with unknown samples (-1, or outside the grid) and no lethal one
+    is drawn: ``"wall"`` (grey, the safe default) or ``"outside"`` (black, as the simulator
+    draws cells beyond its map). The costmap origin's orientation is assumed identity (as
+    Nav2 publishes it).
     Upscaled by nearest neighbour exactly like the simulator.
     """
     info = msg.info
@@ -196,16 +236,29 @@ def costmap_to_observation(msg, robot_xy=None, view_cells: int = 5, size: int = 
     col, row = (np.floor((p - o) / res + 1e-6).astype(np.int64) for p, o in ((px, ox), (py, oy)))
     inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
     cost = np.where(inside, data.reshape(h, w)[row.clip(0, h - 1), col.clip(0, w - 1)], -1).astype(np.int16)
-    blocked = ((cost >= lethal) | (cost < 0)).reshape(view_cells, per_cell, view_cells, per_cell).any(axis=(1, 3))
-    codes = np.where(blocked, WALL, FREE)
+    if unknown not in ("wall", "outside"):
+        raise ValueError(f"unknown must be 'wall' or 'outside', got {unknown!r}")
+
+    def any_in_cell(mask: np.ndarray) -> np.ndarray:
+        return mask.reshape(view_cells, per_cell, view_cells, per_cell).any(axis=(1, 3))
+
+    lethal_cells, unknown_cells = any_in_cell(cost >= lethal), any_in_cell(cost < 0)
+    codes = np.where(lethal_cells, WALL, np.where(unknown_cells, WALL if unknown == "wall" else OUTSIDE, FREE))
     if len(goals_xy) > len(GOAL_NAMES):
         raise ValueError(f"at most {len(GOAL_NAMES)} goals can be drawn, got {len(goals_xy)}")
-    for goal, (gx, gy) in enumerate(goals_xy):  # window cell of the goal, as for the samples above
-        dx, dy = float(gx) - rx, float(gy) - ry
-        goal_row = math.floor(view_cells / 2 - (dx * fx + dy * fy) / cell)  # up = d . heading
-        goal_col = math.floor(view_cells / 2 + (dx * fy - dy * fx) / cell)  # right = d . (fy, -fx)
-        if 0 <= goal_row < view_cells and 0 <= goal_col < view_cells:
-            codes[goal_row, goal_col] = GOAL0 + goal
-    codes[view_cells // 2, view_cells // 2] = AGENT
+
+    def window_cell(x: float, y: float) -> tuple[int, int] | None:
+        """(row, col) of the window cell holding point (x, y), as for the samples above."""
+        dx, dy = float(x) - rx, float(y) - ry
+        row = math.floor(view_cells / 2 - (dx * fx + dy * fy) / cell)  # up = d . heading
+        col = math.floor(view_cells / 2 + (dx * fy - dy * fx) / cell)  # right = d . (fy, -fx)
+        return (row, col) if 0 <= row < view_cells and 0 <= col < view_cells else None
+
+    for goal, goal_xy in enumerate(goals_xy):
+        if goal_xy is not None and (at := window_cell(*goal_xy)) is not None:
+            codes[at] = GOAL0 + goal
+    agent_at = (view_cells // 2, view_cells // 2) if agent_xy is None else window_cell(*agent_xy)
+    if agent_at is not None:
+        codes[agent_at] = AGENT
     counts = np.bincount((np.arange(size) * view_cells) // size, minlength=view_cells)  # as the simulator
     return np.repeat(np.repeat(PALETTE[codes], counts, axis=0), counts, axis=1)

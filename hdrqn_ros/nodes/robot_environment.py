@@ -1,0 +1,347 @@
+"""``robot_environment`` node: the environment node's place on a robot.
+
+On a robot nothing simulates the task, so this node builds, every ``step_period`` seconds
+of ROS time (simulated with ``use_sim_time``), what the environment node publishes
+(``docs/topics.md``): ``observation`` (the local costmap around the robot, drawn as the
+simulator draws its view, the places still to visit in their colours), ``subgoal_images``
+(the costmap around each place), ``env_step`` (``at_subgoal`` from the robot's distance to
+each place, visits paid by the gridworld's ordered-goal rules:
+:class:`~hdrqn_ros.robot.ordered_visits.OrderedVisits`, episode boundaries) and ``pose``.
+The critic, meta-controller, sub-controller and learner run unchanged, lock-step as in
+training: a step waits for the sub-controller's ``action`` on the previous one. What moves
+the robot is the controllers' business (``goal_pose`` to Nav2, or ``cmd_vel``).
+
+Inputs: the robot pose (``pose_topic``: Odometry, PoseStamped or PoseWithCovarianceStamped),
+the local costmap (``costmap_topic``), optionally a global costmap for the places' images,
+and the places: a ``subgoal_table`` YAML or a latched ``geometry_msgs/PoseArray`` on
+``subgoal_poses_topic`` (a loopback robot publishes each episode's layout there). Every
+input must be in the places' frame (there is no tf2 here). Episodes start and stop with
+``~/start_episode`` and ``~/stop_episode`` (``std_srvs/Trigger``, rclpy) or one after the
+other with ``autostart``; each ends when every place was visited in order or at
+``max_steps``. Each finished episode is logged, and appended to ``episode_log`` (JSON lines:
+``episode``, ``success``, ``steps``, ``visits`` (place indices in visit order), ``return``,
+``decision_ms``: the median wall time from a step's publication to its action's arrival,
+critic, meta-controller and sub-controller on the way, and ``success_rate`` so far).
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+
+import numpy as np
+
+from hdrqn_ros.middleware import LATCHED_QOS, BackendError, Middleware
+from hdrqn_ros.nodes import nav
+from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, check_algo, domain_sizes, run_node
+from hdrqn_ros.nodes.ros_time import RosTime
+from hdrqn_ros.protocol import wire
+from hdrqn_ros.robot.ordered_visits import OrderedVisits
+from hdrqn_ros.throttle import Throttle
+
+PARAMETERS = {**ENV_DEFAULTS, "use_sim_time": False, "step_period": 2.5, "pose_topic": "/odom",
+              "pose_type": "odometry", "costmap_topic": "/local_costmap/costmap", "global_costmap_topic": "",
+              "subgoal_table": "", "subgoal_poses_topic": "", "new_layout_each_episode": False,
+              "goal_tolerance": 0.125, "max_steps": 0, "cell_size_m": 0.25, "heading_up": False,
+              "lethal": nav.LETHAL, "unknown_cells": "outside", "stale_after_s": 5.0, "action_timeout": 5.0,
+              "autostart": True, "max_episodes": 0, "episode_log": ""}
+"""``step_period``: seconds (ROS time) per agent step; ``goal_tolerance``: metres within
+which the robot is at a place; ``max_steps``: step limit (0: the domain's, 50);
+``cell_size_m``: metres per simulator cell in the observation; ``heading_up``: observation
+turned with the robot's yaw (forward/turn action tables) instead of north-up;
+``unknown_cells``: ``outside`` (black, as beyond the simulator's map) or ``wall``;
+``stale_after_s``: a pose or costmap older than this (ROS time since it arrived) holds the
+next step; ``action_timeout``: wall seconds before a missing action is reported and the
+step re-published; ``new_layout_each_episode``: start an episode only on places published
+after the last one ended; ``max_episodes``: stop after this many (0: never)."""
+
+
+class RobotEnvironmentNode:
+    def __init__(self, mw: Middleware):
+        node = self.node = mw.create_node("robot_environment")
+        params = self.params = node.declare_parameters(PARAMETERS)
+        check_algo(params["algo"])
+        self.num_actions, self.num_subgoals = domain_sizes(params["env"], params["view"])
+        if not params["view"].isdigit():
+            raise NodeConfigError(f"the robot's observation needs a numeric view (cells), got {params['view']!r}")
+        self.view = int(params["view"])
+        for name in ("step_period", "goal_tolerance", "cell_size_m", "stale_after_s", "action_timeout"):
+            if not (math.isfinite(params[name]) and params[name] > 0):
+                raise NodeConfigError(f"{name} must be a positive number, got {params[name]!r}")
+        if params["pose_type"] not in nav.POSE_TYPES:
+            raise NodeConfigError(f"pose_type must be one of {sorted(nav.POSE_TYPES)}, got {params['pose_type']!r}")
+        if params["unknown_cells"] not in ("outside", "wall"):
+            raise NodeConfigError(f"unknown_cells must be 'outside' or 'wall', got {params['unknown_cells']!r}")
+        if bool(params["subgoal_table"]) == bool(params["subgoal_poses_topic"]):
+            raise NodeConfigError("give the places either as subgoal_table (a YAML file) or as subgoal_poses_topic "
+                                  "(a latched geometry_msgs/PoseArray), exactly one")
+        self.period_ns = int(round(params["step_period"] * 1e9))
+        self.stale_ns = int(round(params["stale_after_s"] * 1e9))
+        max_steps = params["max_steps"] or 50
+        self.task = OrderedVisits(self.num_subgoals, params["goal_tolerance"], max_steps)
+        self.places: nav.SubgoalTable | None = None
+        self.places_stamp = 0  # header stamp (ns) of the places (a table: 0)
+        if params["subgoal_table"]:
+            self.places = nav.SubgoalTable.load(params["subgoal_table"], self.num_subgoals)
+        else:
+            node.create_subscription(nav.POSE_ARRAY, params["subgoal_poses_topic"], self._on_places, LATCHED_QOS)
+        self.clock = RosTime(node, params["use_sim_time"], on_clock=self._tick)
+        self.pose: tuple[float, float, float] | None = None
+        self.pose_ns = self.costmap_ns = -1  # ROS time each input last arrived
+        self.pose_stamp = self.costmap_stamp = -1  # and its header stamp (ns)
+        self.costmap = self.global_costmap = None
+        node.create_subscription(nav.POSE_TYPES[params["pose_type"]], params["pose_topic"], self._on_pose)
+        node.create_subscription(nav.OCCUPANCY_GRID, params["costmap_topic"], self._on_costmap, LATCHED_QOS)
+        if params["global_costmap_topic"]:
+            node.create_subscription(nav.OCCUPANCY_GRID, params["global_costmap_topic"],
+                                     self._on_global_costmap, LATCHED_QOS)
+        self.pub_obs = node.create_publisher(wire.IMAGE, wire.OBSERVATION, wire.STEP_QOS)
+        self.pub_images = node.create_publisher(wire.IMAGE, wire.SUBGOAL_IMAGES, wire.STEP_QOS)
+        self.pub_step = node.create_publisher(wire.FLOATS, wire.ENV_STEP, wire.STEP_QOS)
+        self.pub_pose = node.create_publisher(wire.POSE_STAMPED, wire.POSE)
+        node.create_subscription(wire.INTS, wire.ACTION, self._on_action, wire.STEP_QOS)
+        self.start_requested, self.stop_requested = params["autostart"], False
+        try:
+            node.create_service("std_srvs/srv/Trigger", "~/start_episode", self._on_start)
+            node.create_service("std_srvs/srv/Trigger", "~/stop_episode", self._on_stop)
+        except BackendError as exc:
+            if not params["autostart"]:
+                raise NodeConfigError(f"autostart is false, so episodes start on request, but {exc}") from None
+            node.logger.info("no start/stop services (%s); episodes start one after the other", exc)
+        self.rejected = {name: Throttle(node.logger, f"rejected a message on {node.resolve_topic(topic)}")
+                         for name, topic in (("pose", params["pose_topic"]), ("costmap", params["costmap_topic"]),
+                                             ("global", params["global_costmap_topic"] or "-"),
+                                             ("places", params["subgoal_poses_topic"] or "-"),
+                                             (wire.ACTION, wire.ACTION))}
+        self.wait_since: float | None = None  # wall time the current wait began
+        self.wait_logged = 0.0
+        self.running = False
+        self.finished = False
+        self.record: dict = {}
+        self.key = self.step_ns = 0
+        self.ended_ns = -1  # ROS time the last episode ended
+        self.episode, self.env_steps, self.episodes_done, self.successes = -1, 0, 0, 0
+        self.episode_return = 0.0
+        self.pending_action: int | None = None
+        self.published_at = self.stepped_at = time.monotonic()
+        self.decision_s: list[float] = []  # this episode's wall seconds from a step to its action
+        self.episode_log = open(params["episode_log"], "a", buffering=1) if params["episode_log"] else None
+        node.create_timer(0.02, self._tick)
+        node.create_timer(0.5, self._watchdog)
+
+    # -- inputs ------------------------------------------------------------------------------
+    def _check_frame(self, frame_id: str, what: str) -> None:
+        if self.places is not None and frame_id != self.places.frame_id:
+            raise nav.NavConfigError(f"{what} is in frame {frame_id!r} but the places are in {self.places.frame_id!r} "
+                                     f"({self.places.source}); publish both in one frame (no tf2 here)")
+
+    def _on_pose(self, msg) -> None:
+        try:
+            pose = nav.robot_pose(msg)
+            self._check_frame(msg.header.frame_id, "the robot pose")
+        except nav.NavConfigError as exc:
+            self.rejected["pose"].warn(exc)
+            return
+        self.pose, self.pose_ns, self.pose_stamp = pose, self.clock.now_ns() or 0, RosTime.stamp_ns(msg.header)
+
+    def _check_costmap(self, msg, what: str) -> None:
+        self._check_frame(msg.header.frame_id, what)
+        info = msg.info
+        side = min(int(info.width), int(info.height)) * float(info.resolution)
+        need = self.view * self.params["cell_size_m"]
+        if side < need:
+            raise nav.NavConfigError(f"{what} covers {side:.2f} m, less than the view's {self.view} cells of "
+                                     f"{self.params['cell_size_m']} m ({need:.2f} m)")
+        nav.costmap_to_observation(msg, view_cells=self.view, cell_size_m=self.params["cell_size_m"])  # size checks
+
+    def _on_costmap(self, msg) -> None:
+        try:
+            self._check_costmap(msg, "the costmap")
+        except (nav.NavConfigError, ValueError) as exc:
+            self.rejected["costmap"].warn(exc)
+            return
+        self.costmap, self.costmap_ns = msg, self.clock.now_ns() or 0
+        self.costmap_stamp = RosTime.stamp_ns(msg.header)
+
+    def _on_global_costmap(self, msg) -> None:
+        try:
+            self._check_costmap(msg, "the global costmap")
+        except (nav.NavConfigError, ValueError) as exc:
+            self.rejected["global"].warn(exc)
+            return
+        self.global_costmap = msg
+
+    def _on_places(self, msg) -> None:
+        try:
+            places = nav.SubgoalTable.from_pose_array(msg, self.num_subgoals,
+                                                      self.node.resolve_topic(self.params["subgoal_poses_topic"]))
+        except nav.NavConfigError as exc:
+            self.rejected["places"].warn(exc)
+            return
+        self.places, self.places_stamp = places, RosTime.stamp_ns(msg.header)
+
+    def _on_action(self, msg) -> None:
+        try:
+            key, actions = wire.read_actions(msg, self.num_actions, 1)
+        except wire.ProtocolError as exc:
+            self.rejected[wire.ACTION].warn(exc)
+            return
+        if self.running and key == self.key and self.pending_action is None and actions[0] >= 0:
+            self.pending_action = int(actions[0])
+            self.decision_s.append(time.monotonic() - self.stepped_at)
+            self._tick()
+
+    def _on_start(self, _request, response):
+        response.success = not self.finished
+        response.message = "finished: max_episodes reached" if self.finished else \
+            ("an episode is running" if self.running else "the next episode starts when the inputs are fresh")
+        self.start_requested, self.stop_requested = not self.finished, False
+        return response
+
+    def _on_stop(self, _request, response):
+        response.success = True
+        response.message = f"episode {self.episode} ends at the next step" if self.running else "no episode running"
+        self.start_requested, self.stop_requested = False, self.running
+        return response
+
+    # -- stepping ------------------------------------------------------------------------------
+    def _inputs_missing(self, now: int, since_stamp: int) -> str:
+        """Why no step can be built at ``now`` from inputs stamped at or after ``since_stamp`` ('' if it can)."""
+        params = self.params
+        for what, topic, arrived, stamp in (("pose", params["pose_topic"], self.pose_ns, self.pose_stamp),
+                                            ("costmap", params["costmap_topic"], self.costmap_ns, self.costmap_stamp)):
+            name = self.node.resolve_topic(topic)
+            if arrived < 0:
+                return f"no {what} on {name} yet"
+            if now - arrived > self.stale_ns:
+                return f"the {what} on {name} is {(now - arrived) / 1e9:.1f} s old (stale_after_s {params['stale_after_s']})"
+            if stamp < since_stamp:
+                return f"a {what} on {name} stamped after the places"
+        return ""
+
+    def _wait(self, why: str) -> None:
+        """Report a wait that lasts (after 2 s, then every 10 s), not a momentary one."""
+        now = time.monotonic()
+        if self.wait_since is None:
+            self.wait_since = now
+        elif now - self.wait_since >= 2.0 and now - self.wait_logged >= 10.0:
+            self.wait_logged = now
+            self.node.logger.warning("waiting %.0f s %s", now - self.wait_since, why)
+
+    def _tick(self) -> None:
+        now = self.clock.now_ns()
+        if now is None or self.finished:
+            return
+        if not self.running:
+            if not self.start_requested:
+                return
+            if self.places is None:
+                return self._wait(f"no places yet on {self.node.resolve_topic(self.params['subgoal_poses_topic'])}")
+            new_layout = self.params["new_layout_each_episode"]
+            if new_layout and self.places_stamp < self.ended_ns:
+                return
+            if why := self._inputs_missing(now, self.places_stamp if new_layout else 0):
+                return self._wait(f"to start an episode: {why}")
+            return self._start_episode(now)
+        if self.pending_action is None or now < self.step_ns + self.period_ns:
+            return
+        if why := self._inputs_missing(now, 0):
+            return self._wait(f"for step t={int(self.record['t']) + 1}: {why}")
+        self._advance(now)
+
+    def _new_key(self, now: int) -> None:
+        self.key = max(now, self.key + 1)
+        self.step_ns, self.pending_action = now, None
+        self.published_at = self.stepped_at = time.monotonic()
+        self.wait_since = None
+
+    def _start_episode(self, now: int) -> None:
+        self.episode += 1
+        self.task.start(np.array([pose[:2] for pose in self.places.poses]))
+        self.running, self.episode_return, self.decision_s = True, 0.0, []
+        self._new_key(now)
+        self.record = dict.fromkeys(wire.STEP_FIELDS, 0.0)
+        self.record.update(key=self.key, prev_key=0, env_steps=self.env_steps, episode=self.episode,
+                           at_subgoal=self.task.where(self.pose[:2]), decision_point=1)
+        self._publish()
+
+    def _on_lethal(self) -> bool:
+        """The robot's costmap cell is at or above ``lethal``."""
+        info, (x, y, _) = self.costmap.info, self.pose
+        col = math.floor((x - info.origin.position.x) / info.resolution)
+        row = math.floor((y - info.origin.position.y) / info.resolution)
+        if not (0 <= col < info.width and 0 <= row < info.height):
+            return False
+        return int(np.asarray(self.costmap.data, np.int8)[row * info.width + col]) >= self.params["lethal"]
+
+    def _advance(self, now: int) -> None:
+        prev_key, action = self.key, self.pending_action
+        outcome = self.task.step(self.pose[:2], self._on_lethal())
+        if self.stop_requested and not outcome["terminated"]:
+            outcome.update(truncated=True, decision_point=False)
+        self.env_steps += 1
+        self._new_key(now)
+        self.record = {"key": self.key, "prev_key": prev_key, "env_steps": self.env_steps, "episode": self.episode,
+                       "t": self.task.t, "action": action, **outcome}
+        self.episode_return += outcome["extrinsic"]
+        self._publish()
+        if outcome["terminated"] or outcome["truncated"]:
+            self._end_episode(now, outcome)
+
+    def _end_episode(self, now: int, outcome: dict) -> None:
+        self.running, self.stop_requested, self.ended_ns = False, False, now
+        self.episodes_done += 1
+        self.successes += outcome["success"]
+        names = [nav.GOAL_NAMES[g] if g < len(nav.GOAL_NAMES) else str(g) for g in self.task.visits]
+        row = {"episode": self.episode, "success": bool(outcome["success"]), "steps": self.task.t,
+               "visits": self.task.visits, "return": round(self.episode_return, 4),
+               "decision_ms": round(1e3 * float(np.median(self.decision_s)), 3) if self.decision_s else 0.0,
+               "success_rate": self.successes / self.episodes_done}
+        self.node.logger.info("episode %d: visited %s in %d steps, %s (success %d of %d)", self.episode,
+                              ", ".join(names) or "nothing", self.task.t,
+                              "in order" if outcome["success"] else "not in order", self.successes,
+                              self.episodes_done)
+        if self.episode_log is not None:
+            self.episode_log.write(json.dumps(row) + "\n")
+        if self.params["max_episodes"] and self.episodes_done >= self.params["max_episodes"]:
+            self.finished = True
+
+    def _publish(self) -> None:
+        node, key, frame = self.node, self.key, self.places.frame_id
+        x, y, yaw = self.pose
+        params = self.params
+        view = {"view_cells": self.view, "cell_size_m": params["cell_size_m"], "lethal": params["lethal"],
+                "robot_yaw": yaw if params["heading_up"] else None, "unknown": params["unknown_cells"],
+                "goals_xy": self.task.uncollected_xy()}
+        obs = nav.costmap_to_observation(self.costmap, robot_xy=(x, y), **view)
+        around = self.global_costmap or self.costmap
+        images = np.concatenate([nav.costmap_to_observation(around, robot_xy=xy, agent_xy=(x, y), **view)
+                                 for xy in self.task.goal_xy])
+        self.pub_step.publish(wire.make_record(node, wire.FLOATS, wire.STEP_FIELDS,
+                                               [self.record[f] for f in wire.STEP_FIELDS]))
+        self.pub_obs.publish(wire.make_image(node, key, obs, frame))
+        self.pub_images.publish(wire.make_image(node, key, images, frame))
+        self.pub_pose.publish(wire.make_pose(node, key, frame, x, y))
+
+    def _watchdog(self) -> None:
+        if not self.running or self.pending_action is not None:
+            return
+        waited = time.monotonic() - self.published_at
+        if waited >= self.params["action_timeout"]:
+            self.node.logger.warning("no action for step t=%d of episode %d after %.1f s on %s (is the "
+                                     "sub_controller running?); re-publishing the step", int(self.record["t"]),
+                                     self.episode, waited, self.node.resolve_topic(wire.ACTION))
+            self._publish()
+            self.published_at = time.monotonic()
+
+    def close(self) -> None:
+        if self.episode_log is not None:
+            self.episode_log.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_node(lambda mw: RobotEnvironmentNode(mw), argv, (nav.NavConfigError,))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,93 @@
+"""A trained agent on the loopback robot: the nodes and their parameters.
+
+What ``hdrqn robot`` starts as processes and ``launch/robot.launch.py`` as launch nodes:
+``loopback_robot``, ``robot_environment``, ``critic``, ``meta_controller`` (hierarchical
+agents) and ``sub_controller``, all on simulated time (``use_sim_time``). Two ways to
+drive (``docs/nav2.md``):
+
+- ``sub-drives``: the sub-controller publishes one ``cmd_vel`` per step (the holonomic
+  table ``config/nav2/actions_holonomic.yaml``: the simulator's moves, one cell per step);
+- ``meta-only``: the meta-controller publishes one ``goal_pose`` per option and the
+  robot's navigator drives; an option also ends after ``option_timeout`` seconds.
+"""
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+from hdrqn_ros.supervisor import ProcessSpec
+
+MODES = ("sub-drives", "meta-only")
+NODE_MODULES = {"loopback_robot": "hdrqn_ros.nodes.loopback_robot", "robot_environment":
+                "hdrqn_ros.nodes.robot_environment", "critic": "hdrqn_ros.nodes.critic",
+                "meta_controller": "hdrqn_ros.nodes.controllers:main_meta",
+                "sub_controller": "hdrqn_ros.nodes.controllers:main_sub"}
+HOLONOMIC_ACTIONS = Path(__file__).resolve().parents[1] / "config" / "nav2" / "actions_holonomic.yaml"
+"""The simulator's moves as velocities (source tree; installed to share/hdrqn_ros/config/nav2)."""
+
+
+@dataclass
+class RobotRun:
+    """One robot session's settings (the launch arguments / ``hdrqn robot`` options)."""
+
+    algo: str
+    env: str
+    view: str
+    checkpoint: str = ""
+    policy: str = ""
+    mode: str = "sub-drives"
+    episodes: int = 100
+    seed: int = 0
+    real_time_factor: float = 20.0
+    step_period: float = 2.5
+    option_timeout: float = 30.0
+    episode_log: str = ""
+    action_table: str = str(HOLONOMIC_ACTIONS)
+
+
+def robot_parameters(run: RobotRun) -> dict[str, dict]:
+    """Each node's parameters (node name -> {name: value}); ``"/**"`` is what all share."""
+    if run.mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {run.mode!r}")
+    if bool(run.checkpoint) == bool(run.policy):
+        raise ValueError("give exactly one of checkpoint and policy")
+    drives = run.mode == "sub-drives"
+    acting = {"checkpoint": run.checkpoint, "policy": run.policy, "epsilon": 0.0}
+    return {
+        "/**": {"algo": run.algo, "env": run.env, "view": run.view, "seed": run.seed, "use_sim_time": True},
+        "loopback_robot": {"lockstep": "cmd_vel" if drives else "action", "real_time_factor": run.real_time_factor,
+                           "step_period": run.step_period},
+        "robot_environment": {"subgoal_poses_topic": "subgoal_poses", "new_layout_each_episode": True,
+                              "pose_topic": "odom", "costmap_topic": "local_costmap/costmap",
+                              "global_costmap_topic": "global_costmap/costmap", "step_period": run.step_period,
+                              "max_episodes": run.episodes, "episode_log": run.episode_log},
+        "critic": {"option_timeout": 0.0 if drives else run.option_timeout},
+        "meta_controller": {**acting, **({} if drives else {"subgoal_poses_topic": "subgoal_poses"})},
+        "sub_controller": {**acting, **({"action_table": run.action_table, "cmd_vel_topic": "cmd_vel"}
+                                        if drives else {})},
+    }
+
+
+def write_params(run: RobotRun, path: Path) -> Path:
+    """``path``: a standard ROS 2 parameters file of :func:`robot_parameters`."""
+    doc = {("/**" if node == "/**" else f"/**/{node}"): {"ros__parameters": values}
+           for node, values in robot_parameters(run).items()}
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+def robot_processes(run: RobotRun, params: Path, hierarchical: bool) -> list[ProcessSpec]:
+    """The node processes (the robot environment is required: it finishes the session)."""
+    nodes = ["loopback_robot", "robot_environment", "critic", "meta_controller", "sub_controller"] if hierarchical \
+        else ["loopback_robot", "robot_environment", "sub_controller"]
+    specs = []
+    for node in nodes:
+        module, _, func = NODE_MODULES[node].partition(":")
+        command = [sys.executable, "-m", module] if not func else \
+            [sys.executable, "-c", f"import sys; from {module} import {func} as m; sys.exit(m())"]
+        specs.append(ProcessSpec(name=node, argv=command + ["--ros-args", "--params-file", str(params)],
+                                 respawn=False, required=node == "robot_environment"))
+    return specs

@@ -134,7 +134,7 @@ class SubControllerNode(_Controller):
     ``subgoal`` (its image is the costmap window centred on the subgoal table's pose)."""
 
     role = "sub"
-    nav_parameters = {**nav.SUB_PARAMETERS, "subgoal_table": "", "stale_after_s": 5.0}
+    nav_parameters = {**nav.SUB_PARAMETERS, "subgoal_table": ""}
 
     def __init__(self, mw: Middleware):
         super().__init__(mw, "sub_controller")

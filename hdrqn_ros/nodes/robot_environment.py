@@ -86,6 +86,7 @@ class RobotEnvironmentNode:
         else:
             node.create_subscription(nav.POSE_ARRAY, params["subgoal_poses_topic"], self._on_places, LATCHED_QOS)
         self.clock = RosTime(node, params["use_sim_time"], on_clock=self._tick)
+        self.key_origin = 0 if self.clock.use_sim_time else time.time_ns() - 10**9
         self.pose: tuple[float, float, float] | None = None
         self.pose_ns = self.costmap_ns = -1  # ROS time each input last arrived
         self.pose_stamp = self.costmap_stamp = -1  # and its header stamp (ns)
@@ -110,9 +111,9 @@ class RobotEnvironmentNode:
             node.logger.info("no start/stop services (%s); episodes start one after the other", exc)
         self.rejected = {name: Throttle(node.logger, f"rejected a message on {node.resolve_topic(topic)}")
                          for name, topic in (("pose", params["pose_topic"]), ("costmap", params["costmap_topic"]),
-                                             ("global", params["global_costmap_topic"] or "-"),
-                                             ("places", params["subgoal_poses_topic"] or "-"),
-                                             (wire.ACTION, wire.ACTION))}
+                                             ("global", params["global_costmap_topic"]),
+                                             ("places", params["subgoal_poses_topic"]), (wire.ACTION, wire.ACTION))
+                         if topic}
         self.wait_since: float | None = None  # wall time the current wait began
         self.wait_logged = 0.0
         self.running = False
@@ -250,7 +251,9 @@ class RobotEnvironmentNode:
         self._advance(now)
 
     def _new_key(self, now: int) -> None:
-        self.key = max(now, self.key + 1)
+        """Step keys are ROS time in ns: simulated time as it is, wall time since the node
+        started (keys stay below 2^53, exact in the float64 records)."""
+        self.key = max(now - self.key_origin, self.key + 1)
         self.step_ns, self.pending_action = now, None
         self.published_at = self.stepped_at = time.monotonic()
         self.wait_since = None

@@ -1,0 +1,262 @@
+"""A trained agent's nodes on the loopback robot, as real node processes (issue 26):
+loopback_robot, robot_environment, critic, meta_controller and sub_controller on
+simulated time, watched by a probe node on the standard topics (cmd_vel, goal_pose, odom).
+
+- sub-drives: the robot's episodes are the simulator's, step for step (same layouts
+  without fire, greedy agent), with one cmd_vel per step and a zero one at each episode's end;
+- meta-only: one goal_pose per option, no cmd_vel;
+- stop means stop: a zero command when the sub-controller is stopped and when its
+  observation goes stale (the robot environment killed);
+- bad input: startup mistakes exit 2 naming the problem; bad messages are logged and
+  skipped, and the node goes on.
+"""
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hdrqn_ros.middleware import LATCHED_QOS, open_middleware
+from hdrqn_ros.nodes import nav
+from hdrqn_ros.protocol import wire
+from hdrqn_ros.robot_graph import RobotRun, robot_processes, write_params
+from hdrqn_ros.supervisor import ProcessSpec, Supervisor
+from hdrqn_ros.training.learner import load_trained_agent, play
+
+from conftest import NO_RCLPY
+from test_graph import ENV, domain, read_jsonl, wait_for  # noqa: F401  (domain: a fixture)
+from test_onnx_export import _make_checkpoint
+
+SEED = 2
+EPISODES = 3
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory) -> Path:
+    """An hDRQNv2 checkpoint whose weights are moved off their start (a deterministic greedy agent)."""
+    path = tmp_path_factory.mktemp("robot") / "run" / "checkpoints" / "last.pt"
+    _make_checkpoint(path, "hdrqn-v2", ENV, seed=41)
+    return path
+
+
+class Probe:
+    """The test's own node on the robot's standard topics: every cmd_vel, goal_pose, odometry
+    twist, subgoal and env_step it hears, in order."""
+
+    def __init__(self, backend: str | None = None):
+        self.mw = open_middleware(["probe"], backend)
+        node = self.node = self.mw.create_node("probe")
+        self.cmd_vel: list[tuple[float, float, float]] = []
+        self.goal_poses: list[tuple[float, float]] = []
+        self.odom_twist: list[tuple[float, float, float]] = []
+        self.new_options = 0
+        self.steps: list[dict] = []
+        node.create_subscription(nav.TWIST, "/cmd_vel", lambda m: self.cmd_vel.append(
+            (m.linear.x, m.linear.y, m.angular.z)))
+        node.create_subscription(nav.POSE_STAMPED, "/goal_pose", lambda m: self.goal_poses.append(
+            (m.pose.position.x, m.pose.position.y)))
+        node.create_subscription(nav.POSE_TYPES["odometry"], "/odom", lambda m: self.odom_twist.append(
+            (m.twist.twist.linear.x, m.twist.twist.linear.y, m.twist.twist.angular.z)))
+        node.create_subscription(wire.INTS, "/subgoal", self._on_subgoal, wire.STEP_QOS)
+        node.create_subscription(wire.FLOATS, "/env_step", lambda m: self.steps.append(
+            wire.read_record(m, wire.STEP_FIELDS)), wire.STEP_QOS)
+
+    def _on_subgoal(self, msg) -> None:
+        self.new_options += int(wire.read_records(msg, wire.SUBGOAL_FIELDS, np.int64)[0]["new_option"])
+
+    def until(self, cond, timeout: float, what: str, sup: Supervisor) -> None:
+        end = time.monotonic() + timeout
+        while not cond():
+            sup.poll()
+            assert time.monotonic() < end, f"timed out after {timeout} s waiting for {what}: {sup.returncodes}"
+            self.mw.spin(timeout_s=0.1)
+
+    def close(self) -> None:
+        self.mw.shutdown()
+
+
+def start(tmp_path: Path, checkpoint: Path, mode: str, episodes: int = EPISODES, **overrides) -> tuple[Supervisor, Path]:
+    """The robot graph's processes for ``checkpoint`` (``overrides``: extra parameters by node)."""
+    log = tmp_path / "episodes.jsonl"
+    run = RobotRun(algo="hdrqn-v2", env=ENV, view="5", checkpoint=str(checkpoint), mode=mode, episodes=episodes,
+                   seed=SEED, real_time_factor=40.0, episode_log=str(log))
+    params = write_params(run, tmp_path / "params.yaml")
+    specs = []
+    for spec in robot_processes(run, params, hierarchical=True):
+        extra = [f"{name}:={value}" for name, value in overrides.get(spec.name, {}).items()]
+        specs.append(ProcessSpec(spec.name, spec.argv + [a for item in extra for a in ("-p", item)],
+                                 required=spec.required))
+    sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=10)
+    sup.start()
+    return sup, log
+
+
+def finished(sup: Supervisor):
+    """The robot environment ran its episodes and exited."""
+    return lambda: sup.returncodes["robot_environment"] is not None
+
+
+@pytest.mark.parametrize("backend", [pytest.param("rclpy", marks=NO_RCLPY), "cyclone"])
+def test_sub_drives_the_simulators_episodes_with_one_cmd_vel_per_step(tmp_path, checkpoint, backend, domain,
+                                                                     monkeypatch):
+    monkeypatch.setenv("HDRQN_MIDDLEWARE", backend)
+    probe = Probe(backend)
+    sup, log = start(tmp_path, checkpoint, "sub-drives")
+    try:
+        probe.until(finished(sup), 240, f"{EPISODES} robot episodes", sup)
+        probe.until(lambda: probe.cmd_vel and probe.cmd_vel[-1] == (0.0, 0.0, 0.0), 30, "the last zero command", sup)
+        probe.until(lambda: probe.odom_twist and probe.odom_twist[-1] == (0.0, 0.0, 0.0), 30, "the robot at rest", sup)
+    finally:
+        codes = sup.stop()
+        probe.close()
+    assert codes["robot_environment"] == 0, codes
+    robot = read_jsonl(log)
+    cfg, agent = load_trained_agent(checkpoint)
+    cfg = cfg.model_copy(update={"env_kwargs": {**cfg.env_kwargs, "obstacles": False}})
+    simulated = play(agent, cfg, EPISODES, SEED, num_envs=1)
+    assert [(r["steps"], r["success"]) for r in robot] == [(e.steps, e.success) for e in simulated]
+    moves = [c for c in probe.cmd_vel if c != (0.0, 0.0, 0.0)]
+    assert len(moves) == sum(r["steps"] for r in robot), "one command per agent step"
+    assert len(probe.cmd_vel) - len(moves) >= EPISODES, "a zero command at each episode's end"
+    assert probe.goal_poses == []
+
+
+@NO_RCLPY
+def test_meta_only_sends_one_goal_pose_per_option_and_no_cmd_vel(tmp_path, checkpoint, domain, monkeypatch):
+    monkeypatch.setenv("HDRQN_MIDDLEWARE", "rclpy")
+    probe = Probe("rclpy")
+    sup, log = start(tmp_path, checkpoint, "meta-only", critic={"option_timeout": 12.0})
+    try:
+        probe.until(finished(sup), 240, f"{EPISODES} robot episodes", sup)
+        probe.until(lambda: len(probe.goal_poses) == probe.new_options, 30, "a goal_pose for every option", sup)
+    finally:
+        codes = sup.stop()
+        probe.close()
+    assert codes["robot_environment"] == 0, codes
+    assert probe.new_options >= EPISODES and len(probe.goal_poses) == probe.new_options
+    assert probe.cmd_vel == []
+    assert any(r["visits"] for r in read_jsonl(log)), "the navigator reached the places chosen"
+
+
+@NO_RCLPY
+@pytest.mark.parametrize("stop", ["sigterm", "stale"])
+def test_stop_means_a_zero_command(tmp_path, checkpoint, domain, monkeypatch, stop):
+    """The sub-controller stopped (SIGTERM), or its observation stale (the robot environment
+    killed): the last cmd_vel is the zero one and the robot stands still."""
+    monkeypatch.setenv("HDRQN_MIDDLEWARE", "rclpy")
+    probe = Probe("rclpy")
+    sup, log = start(tmp_path, checkpoint, "sub-drives", episodes=50, loopback_robot={"lockstep_timeout": 2.0},
+                     sub_controller={"stale_after_s": 5.0})
+    try:
+        probe.until(lambda: sum(c != (0.0, 0.0, 0.0) for c in probe.cmd_vel) >= 3, 240, "the robot driving", sup)
+        sup.kill("sub_controller" if stop == "sigterm" else "robot_environment",
+                 signal.SIGTERM if stop == "sigterm" else signal.SIGKILL)
+        probe.until(lambda: probe.cmd_vel[-1] == (0.0, 0.0, 0.0), 60, "a zero command", sup)
+        count = len(probe.odom_twist)
+        probe.until(lambda: len(probe.odom_twist) > count + 30 and probe.odom_twist[-1] == (0.0, 0.0, 0.0), 60,
+                    "the robot at rest", sup)
+    finally:
+        sup.stop()
+        probe.close()
+    sub_log = (tmp_path / "logs" / "sub_controller.log").read_text()
+    if stop == "stale":
+        assert "stale_after_s" in sub_log, sub_log[-2000:]
+
+
+def run_node(tmp_path: Path, name: str, *params: str, timeout: float = 120) -> tuple[int, str]:
+    from hdrqn_ros.robot_graph import NODE_MODULES
+
+    argv = [sys.executable, "-m", NODE_MODULES[name], "--ros-args"]
+    for param in params:
+        argv += ["-p", param]
+    sup = Supervisor([ProcessSpec(name, argv)], log_dir=tmp_path)
+    sup.start()
+    try:
+        wait_for(lambda: sup.returncodes[name] is not None, timeout, f"{name} to exit", sup)
+    finally:
+        codes = sup.stop()
+    return codes[name], (tmp_path / f"{name}.log").read_text()
+
+
+@pytest.mark.parametrize("params, problem", [
+    (["subgoal_poses_topic:=places", "pose_type:=gps"], "pose_type must be one of"),
+    ([], "exactly one"),
+    (["subgoal_poses_topic:=places", "step_period:=0.0"], "step_period must be a positive"),
+    (["subgoal_table:=TABLE3"], "3 entries but the agent has 2"),
+])
+def test_robot_environment_startup_mistakes_exit_2(tmp_path, domain, params, problem):
+    table = tmp_path / "three.yaml"
+    table.write_text("subgoals: [{x: 0, y: 0}, {x: 1, y: 0}, {x: 2, y: 0}]\n")
+    code, out = run_node(tmp_path, "robot_environment", *(p.replace("TABLE3", str(table)) for p in params))
+    assert code == 2 and problem in out, out
+
+
+def test_cyclone_has_no_episode_services_and_says_so(tmp_path, domain, monkeypatch):
+    monkeypatch.setenv("HDRQN_MIDDLEWARE", "cyclone")
+    code, out = run_node(tmp_path, "robot_environment", "subgoal_poses_topic:=places", "autostart:=false")
+    assert code == 2 and "Cyclone DDS backend offers no ROS 2 services" in out and "start_episode" in out, out
+
+
+@NO_RCLPY
+def test_bad_messages_are_logged_and_skipped(tmp_path, domain, monkeypatch):
+    """A pose in another frame, a non-finite pose and a costmap smaller than the view are
+    refused with a reason; the node goes on and starts an episode from good inputs."""
+    monkeypatch.setenv("HDRQN_MIDDLEWARE", "rclpy")
+    table = tmp_path / "places.yaml"
+    table.write_text("frame_id: map\nsubgoals: [{x: 1.0, y: 1.0}, {x: 2.0, y: 1.0}]\n")
+    sup = Supervisor([ProcessSpec("robot_environment", [sys.executable, "-m", "hdrqn_ros.nodes.robot_environment",
+                                                        "--ros-args", "-p", f"subgoal_table:={table}",
+                                                        "-p", "costmap_topic:=/costmap"])], log_dir=tmp_path)
+    mw = open_middleware(["probe"], "rclpy")
+    node = mw.create_node("probe")
+    steps = []
+    node.create_subscription(wire.FLOATS, "/env_step", steps.append, wire.STEP_QOS)
+    pose_pub = node.create_publisher(nav.POSE_TYPES["odometry"], "/odom")
+    map_pub = node.create_publisher(nav.OCCUPANCY_GRID, "/costmap", LATCHED_QOS)
+    log = tmp_path / "robot_environment.log"
+
+    def odom(frame: str, x: float):
+        msg = node.msg(nav.POSE_TYPES["odometry"])()
+        msg.header.frame_id, msg.pose.pose.position.x, msg.pose.pose.position.y = frame, x, 1.5
+        msg.pose.pose.orientation.w = 1.0
+        return msg
+
+    def costmap(cells: int):
+        msg = node.msg(nav.OCCUPANCY_GRID)()
+        msg.header.frame_id = "map"
+        msg.info.width = msg.info.height = cells
+        msg.info.resolution = 0.05
+        msg.data = node.pack(np.zeros(cells * cells, np.int8))
+        return msg
+
+    sup.start()
+    try:
+        def seen(text: str):
+            return log.exists() and text in log.read_text()
+
+        for msg, text in ((odom("odom", 1.5), "frame 'odom' but the places are in 'map'"),
+                          (odom("map", float("nan")), "not finite"), (costmap(10), "less than the view")):
+            publish = pose_pub if text != "less than the view" else map_pub
+            end = time.monotonic() + 60
+            while not seen(text):
+                sup.poll()
+                assert time.monotonic() < end and sup.returncodes["robot_environment"] is None, log.read_text()
+                publish.publish(msg)
+                mw.spin(timeout_s=0.2)
+        map_pub.publish(costmap(60))
+        end = time.monotonic() + 60
+        while not steps:
+            assert time.monotonic() < end, log.read_text()
+            pose_pub.publish(odom("map", 1.5))
+            mw.spin(timeout_s=0.2)
+    finally:
+        codes = sup.stop()
+        mw.shutdown()
+    assert codes["robot_environment"] == 0, codes
+    first = wire.read_record(steps[0], wire.STEP_FIELDS)
+    assert first["t"] == 0 and first["episode"] == 0

@@ -25,8 +25,7 @@ from launch.event_handlers import OnProcessExit
 from launch.events import Shutdown
 from launch_ros.actions import Node
 
-from hdrqn_ros.launch_support import (DEFAULT_ALGO, HIERARCHICAL_ALGOS, PACKAGE, arg, float_arg, int_arg,
-                                      share_dir)
+from hdrqn_ros.launch_support import DEFAULT_ALGO, HIERARCHICAL_ALGOS, PACKAGE, arg, float_arg, int_arg, share_dir
 from hdrqn_ros.robot_graph import MODES, RobotRun, robot_parameters
 
 
@@ -44,18 +43,27 @@ def _nodes(context):
                    action_table=str(share_dir() / "config" / "nav2" / "actions_holonomic.yaml"))
     params = robot_parameters(run)
     shared = params.pop("/**")
-    nodes = ["loopback_robot", "robot_environment", "sub_controller"]
+
+    def parameters(name: str) -> list[dict]:
+        return [{**shared, **params[name]}]
+
+    robot_environment = Node(package=PACKAGE, executable="robot_environment", name="robot_environment",
+                             parameters=parameters("robot_environment"), output="screen")
+    actions = [LogInfo(msg=f"hdrqn_ros robot: {run.algo} from {checkpoint or policy}, {mode}, {run.episodes} episodes"),
+               Node(package=PACKAGE, executable="loopback_robot", name="loopback_robot",
+                    parameters=parameters("loopback_robot"), output="screen"),
+               robot_environment,
+               RegisterEventHandler(OnProcessExit(
+                   target_action=robot_environment,
+                   on_exit=[LogInfo(msg="the robot environment finished: shutting down"),
+                            EmitEvent(event=Shutdown(reason="robot_environment finished"))]))]
     if run.algo in HIERARCHICAL_ALGOS:
-        nodes[2:2] = ["critic", "meta_controller"]
-    actions = [LogInfo(msg=f"hdrqn_ros robot: {run.algo} from {checkpoint or policy}, {mode}, {run.episodes} episodes")]
-    for name in nodes:
-        actions.append(Node(package=PACKAGE, executable=name, name=name, parameters=[{**shared, **params[name]}],
+        actions.append(Node(package=PACKAGE, executable="critic", name="critic", parameters=parameters("critic"),
                             output="screen"))
-        if name == "robot_environment":
-            actions.append(RegisterEventHandler(OnProcessExit(
-                target_action=actions[-1],
-                on_exit=[LogInfo(msg="the robot environment finished: shutting down"),
-                         EmitEvent(event=Shutdown(reason="robot_environment finished"))])))
+        actions.append(Node(package=PACKAGE, executable="meta_controller", name="meta_controller",
+                            parameters=parameters("meta_controller"), output="screen"))
+    actions.append(Node(package=PACKAGE, executable="sub_controller", name="sub_controller",
+                        parameters=parameters("sub_controller"), output="screen"))
     return actions
 
 

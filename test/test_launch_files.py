@@ -17,14 +17,15 @@ import pytest
 from hdrqn_ros.agents.algorithms import ALGO_SPECS
 from hdrqn_ros.middleware.port import ParameterError
 from hdrqn_ros.middleware.ros_args import load_params_file
-from hdrqn_ros.nodes import environment, learner, nav
+from hdrqn_ros.nodes import critic, environment, learner, loopback_robot, nav, robot_environment
 from hdrqn_ros.nodes.common import ENV_DEFAULTS
 from hdrqn_ros.nodes.controllers import CONTROLLER_PARAMETERS
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = ROOT / "launch" / "train.launch.py"
 RUN_POLICY = ROOT / "launch" / "run_policy.launch.py"
-LAUNCH_FILES = (TRAIN, RUN_POLICY)
+ROBOT = ROOT / "launch" / "robot.launch.py"
+LAUNCH_FILES = (TRAIN, RUN_POLICY, ROBOT)
 TRAIN_YAML = ROOT / "config" / "ros" / "train.yaml"
 RUN_POLICY_YAML = ROOT / "config" / "ros" / "run_policy.yaml"
 PARAM_FILES = (TRAIN_YAML, RUN_POLICY_YAML)
@@ -33,7 +34,9 @@ GLOBAL_PARAMETERS = {"dds_interface": "", "ros_domain_id": 0, "max_message_bytes
 """Read by the middleware (Cyclone backend) or by rclpy itself, allowed on every node."""
 NODE_PARAMETERS = {
     "environment": environment.PARAMETERS,
-    "critic": ENV_DEFAULTS,
+    "critic": critic.PARAMETERS,
+    "robot_environment": robot_environment.PARAMETERS,
+    "loopback_robot": loopback_robot.PARAMETERS,
     # the Nav2 adapter parameters are being wired into the controllers (hdrqn_ros/nodes/nav.py)
     "meta_controller": {**CONTROLLER_PARAMETERS, **nav.META_PARAMETERS},
     "sub_controller": {**CONTROLLER_PARAMETERS, **nav.SUB_PARAMETERS},
@@ -123,6 +126,18 @@ def test_params_files_agree_with_the_nodes_modes():
     assert ("/learner", "groups") not in train and ("/learner", "resume") not in train  # set by the launch file
 
 
+@pytest.mark.parametrize("mode", ["sub-drives", "meta-only"])
+def test_robot_graph_parameters_are_declared(mode):
+    """What ``hdrqn robot`` and robot.launch.py give each node is what it declares, typed alike."""
+    from hdrqn_ros.robot_graph import RobotRun, robot_parameters
+
+    params = robot_parameters(RobotRun("hdrqn-v2", "hdrqn/GridWorld-2Goals-v0", "5", checkpoint="c.pt", mode=mode))
+    for name, value in params.pop("/**").items():
+        check_value("/**", name, value, {**ENV_DEFAULTS, **GLOBAL_PARAMETERS}[name])
+    for node, values in params.items():
+        check_parameters(f"robot graph [{node}]", node, values)
+
+
 def test_launch_constants_match_the_code():
     from hdrqn_ros import launch_support
 
@@ -188,6 +203,13 @@ def test_train_launch_with_ros_one_group_has_five_nodes():
 def test_train_launch_with_ros_two_flat_groups():
     nodes = _real_nodes(TRAIN, groups="2", algo="dqn")
     assert sorted(n.node_executable for n in nodes) == sorted(FLAT_NODES * 2 + ("learner",))
+
+
+def test_robot_launch_with_ros():
+    nodes = _real_nodes(ROBOT, checkpoint="c.pt", mode="sub-drives", episodes="10", seed="0",
+                        real_time_factor="20.0", algo="hdrqn-v2", env="hdrqn/GridWorld-2Goals-v0", view="5")
+    assert sorted(n.node_executable for n in nodes) == sorted(["loopback_robot", "robot_environment", "critic",
+                                                               "meta_controller", "sub_controller"])
 
 
 def test_run_policy_launch_with_ros():

@@ -9,6 +9,9 @@ drive (``docs/nav2.md``):
   table ``config/nav2/actions_holonomic.yaml``: the simulator's moves, one cell per step);
 - ``meta-only``: the meta-controller publishes one ``goal_pose`` per option and the
   robot's navigator drives; an option also ends after ``option_timeout`` seconds.
+
+With ``record``, a ``learner`` node records the episodes to a rosbag2 MCAP bag (the
+graph's own topics: ``hdrqn train --from-bag`` trains on it).
 """
 from __future__ import annotations
 
@@ -24,7 +27,7 @@ MODES = ("sub-drives", "meta-only")
 NODE_MODULES = {"loopback_robot": "hdrqn_ros.nodes.loopback_robot", "robot_environment":
                 "hdrqn_ros.nodes.robot_environment", "critic": "hdrqn_ros.nodes.critic",
                 "meta_controller": "hdrqn_ros.nodes.controllers:main_meta",
-                "sub_controller": "hdrqn_ros.nodes.controllers:main_sub"}
+                "sub_controller": "hdrqn_ros.nodes.controllers:main_sub", "learner": "hdrqn_ros.nodes.learner"}
 HOLONOMIC_ACTIONS = Path(__file__).resolve().parents[1] / "config" / "nav2" / "actions_holonomic.yaml"
 """The simulator's moves as velocities (source tree; installed to share/hdrqn_ros/config/nav2)."""
 
@@ -46,6 +49,8 @@ class RobotRun:
     option_timeout: float = 30.0
     episode_log: str = ""
     action_table: str = str(HOLONOMIC_ACTIONS)
+    record: str = ""  # a new bag: a learner node records every message of the robot's episodes
+    learner_dir: str = ""  # the recording learner's run directory
 
 
 def robot_parameters(run: RobotRun) -> dict[str, dict]:
@@ -54,9 +59,12 @@ def robot_parameters(run: RobotRun) -> dict[str, dict]:
         raise ValueError(f"mode must be one of {MODES}, got {run.mode!r}")
     if bool(run.checkpoint) == bool(run.policy):
         raise ValueError("give exactly one of checkpoint and policy")
+    if run.record and not run.policy:
+        raise ValueError("recording needs an exported policy (frozen): the recording learner's weights would "
+                         "replace a checkpoint's in the controllers")
     drives = run.mode == "sub-drives"
     acting = {"checkpoint": run.checkpoint, "policy": run.policy, "epsilon": 0.0}
-    return {
+    params = {
         "/**": {"algo": run.algo, "env": run.env, "view": run.view, "seed": run.seed, "use_sim_time": True},
         "loopback_robot": {"lockstep": "cmd_vel" if drives else "action", "real_time_factor": run.real_time_factor,
                            "step_period": run.step_period},
@@ -69,6 +77,10 @@ def robot_parameters(run: RobotRun) -> dict[str, dict]:
         "sub_controller": {**acting, **({"action_table": run.action_table, "cmd_vel_topic": "cmd_vel"}
                                         if drives else {})},
     }
+    if run.record:
+        params["learner"] = {"record": run.record, "episodes": run.episodes, "run_dir": run.learner_dir,
+                             "evaluate": False}
+    return params
 
 
 def write_params(run: RobotRun, path: Path) -> Path:
@@ -83,11 +95,13 @@ def robot_processes(run: RobotRun, params: Path, hierarchical: bool) -> list[Pro
     """The node processes (the robot environment is required: it finishes the session)."""
     nodes = ["loopback_robot", "robot_environment", "critic", "meta_controller", "sub_controller"] if hierarchical \
         else ["loopback_robot", "robot_environment", "sub_controller"]
+    if run.record:
+        nodes.append("learner")
     specs = []
     for node in nodes:
         module, _, func = NODE_MODULES[node].partition(":")
         command = [sys.executable, "-m", module] if not func else \
             [sys.executable, "-c", f"import sys; from {module} import {func} as m; sys.exit(m())"]
         specs.append(ProcessSpec(name=node, argv=command + ["--ros-args", "--params-file", str(params)],
-                                 respawn=False, required=node == "robot_environment"))
+                                 required=node == "robot_environment"))
     return specs

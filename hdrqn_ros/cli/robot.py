@@ -33,6 +33,9 @@ def add_robot(sub) -> None:
                         help="simulated seconds per wall second (0: as fast as possible; default 20)")
     parser.add_argument("--out", metavar="DIR", help="where params.yaml, logs/ and episodes.jsonl go "
                                                      "(default runs/robot-<mode>-<time>)")
+    parser.add_argument("--record", metavar="BAG_DIR",
+                        help="also record the episodes to this new rosbag2 MCAP bag (a learner node; needs --policy): "
+                             "hdrqn train --from-bag BAG_DIR trains on it")
     parser.add_argument("--middleware", choices=BACKENDS, default=None,
                         help="node backend (default: $HDRQN_MIDDLEWARE or auto)")
 
@@ -67,6 +70,11 @@ def cmd_robot(args) -> int:
         backend = chosen_backend(args.middleware)
     except BackendError as exc:
         raise UsageError(str(exc)) from None
+    if args.record and not args.policy:
+        raise UsageError("--record needs --policy (an exported, frozen policy: hdrqn export): the recording "
+                         "learner's weights would replace a checkpoint's")
+    if args.record and Path(args.record).exists():
+        raise UsageError(f"{args.record} already exists; refusing to overwrite a recording")
     algo, env, view = _agent_settings(args)
     if env not in GRID_IDS:
         raise UsageError(f"the loopback robot drives the gridworld maps; this agent was trained on {env!r}")
@@ -77,7 +85,8 @@ def cmd_robot(args) -> int:
     run = RobotRun(algo=algo, env=env, view=view, checkpoint=str(Path(args.checkpoint).resolve()) if args.checkpoint
                    else "", policy=str(Path(args.policy).resolve()) if args.policy else "", mode=args.mode,
                    episodes=args.episodes, seed=args.seed, real_time_factor=args.real_time_factor,
-                   episode_log=str(episodes_path.resolve()))
+                   episode_log=str(episodes_path.resolve()),
+                   record=str(Path(args.record).resolve()) if args.record else "", learner_dir=str(out / "learner"))
     specs = robot_processes(run, write_params(run, out / "params.yaml"), ALGO_SPECS[algo].hierarchical)
     print(f"starting the loopback robot and {len(specs) - 1} nodes ({backend}) for {algo} on {env}, {args.mode}, "
           f"{args.episodes} episodes at {args.real_time_factor:g}x real time -> {out}", file=sys.stderr)

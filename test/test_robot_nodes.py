@@ -260,3 +260,37 @@ def test_bad_messages_are_logged_and_skipped(tmp_path, domain, monkeypatch):
     assert codes["robot_environment"] == 0, codes
     first = wire.read_record(steps[0], wire.STEP_FIELDS)
     assert first["t"] == 0 and first["episode"] == 0
+
+
+@NO_RCLPY
+def test_episodes_start_and_stop_on_request(tmp_path, checkpoint, domain, monkeypatch):
+    """``autostart`` off: nothing steps until ``~/start_episode``; ``~/stop_episode`` ends the
+    running episode (truncated) at its next step, and no other starts."""
+    from std_srvs.srv import Trigger
+
+    monkeypatch.setenv("HDRQN_MIDDLEWARE", "rclpy")
+    probe = Probe("rclpy")
+    sup, log = start(tmp_path, checkpoint, "sub-drives", episodes=5, robot_environment={"autostart": False})
+    clients = {name: probe.node._node.create_client(Trigger, f"/robot_environment/{name}")
+               for name in ("start_episode", "stop_episode")}
+
+    def call(name: str):
+        future = clients[name].call_async(Trigger.Request())
+        probe.until(future.done, 60, f"the answer of {name}", sup)
+        return future.result()
+
+    try:
+        probe.until(lambda: all(c.service_is_ready() for c in clients.values()), 120, "the services", sup)
+        probe.mw.spin(timeout_s=2.0)
+        assert probe.steps == [], "no episode before start_episode"
+        assert call("start_episode").success
+        probe.until(lambda: len(probe.steps) >= 3, 120, "the episode's steps", sup)
+        assert call("stop_episode").success
+        probe.until(lambda: log.exists() and read_jsonl(log), 60, "the stopped episode's end", sup)
+        ended = len(probe.steps)
+        probe.mw.spin(timeout_s=3.0)
+    finally:
+        sup.stop()
+        probe.close()
+    assert probe.steps[ended - 1]["truncated"] == 1 and len(probe.steps) == ended
+    assert read_jsonl(log)[0]["steps"] < 50

@@ -34,10 +34,11 @@ import tarfile
 import tempfile
 from pathlib import Path
 
+from hdrqn_ros.extras import MissingExtra, install_command, require
 from hdrqn_ros.experiments import (RUN_METRICS, Experiment, RunSpec, config_dir, default_jobs, episodes_logged,
                                    set_aside, split_finished, target_episodes, write_manifest)
 
-INSTALL_HINT = "pip install 'hdrqn_ros[cluster]'"
+INSTALL_HINT = install_command("cluster")
 USAGE_STATS_ENV = "RAY_USAGE_STATS_ENABLED"
 REPORT_S = 2.0
 """Seconds between a task's reports of its run's episodes to the progress board."""
@@ -62,9 +63,11 @@ def import_ray():
     """``import ray`` with usage statistics off; :class:`RayUnavailable` when it is missing."""
     os.environ[USAGE_STATS_ENV] = "0"  # before ray is imported or initialised: nothing is reported
     try:
-        import ray
-    except ImportError:
-        raise RayUnavailable(f"--ray needs ray, which is not installed: {INSTALL_HINT}") from None
+        require("cluster", "--ray")
+    except MissingExtra as exc:
+        raise RayUnavailable(str(exc)) from None
+    import ray
+
     return ray
 
 

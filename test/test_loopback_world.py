@@ -31,11 +31,12 @@ def test_a_long_move_stops_at_the_wall_instead_of_jumping_it(ticks):
     """Cell (2, 4) of four-rooms is left of the middle wall (col 5): 1 m to the right in one
     advance must stop touching the wall, as in small ticks, not land in the other room."""
     world = world_at("fourrooms", (2, 4))
-    world.command(1.0, 0.0, 0.0, 1.0)
+    world.command(1.0, 0.0, 0.0, 2.0)
     for dt in ticks:
         world.advance(dt)
-    assert world.x == pytest.approx(5 * 0.25 - world.radius, abs=1e-9)
-    assert world.cell_of(*world.pose[:2]) == (2, 4) and world.velocity == (0.0, 0.0, 0.0)
+    assert world.x == pytest.approx(5 * 0.25 - world.radius, abs=1e-9) and world.cell_of(*world.pose[:2]) == (2, 4)
+    world.advance(0.1)  # still pushing against the wall
+    assert world.moving and world.velocity == (0.0, 0.0, 0.0)
 
 
 @pytest.mark.parametrize("holonomic, body_v, expected", [

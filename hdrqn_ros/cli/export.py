@@ -17,6 +17,9 @@ def add_export(sub) -> None:
 
 
 def cmd_export(args) -> int:
+    from hdrqn_ros.extras import require
+
+    require("deploy", "hdrqn export", ("onnx",) if args.no_verify else None)
     from hdrqn_ros.training.export import export_policy
 
     out = export_policy(args.checkpoint, args.out, verify=not args.no_verify)

@@ -43,6 +43,9 @@ def add_robot(sub) -> None:
 def _agent_settings(args) -> tuple[str, str, str]:
     """(algo, env, view) of the checkpoint or exported policy."""
     if args.policy:
+        from hdrqn_ros.extras import require
+
+        require("deploy", "hdrqn robot --policy", ("onnxruntime",))
         from hdrqn_ros.deploy.onnx_policy import OnnxPolicy
 
         policy = OnnxPolicy.load(args.policy)

@@ -13,6 +13,7 @@ import numpy as np
 
 from hdrqn_ros.deploy.specs import ALGO_SPECS, PolicyError
 from hdrqn_ros.envs.registration import GRID_IDS, MONTEZUMA_IDS, make_batch
+from hdrqn_ros.extras import MissingExtra, require
 from hdrqn_ros.middleware import BackendError, Middleware, Node, ParameterError, RosArgsError, open_middleware
 from hdrqn_ros.protocol.wire import MAX_ENVS
 
@@ -95,6 +96,7 @@ def make_acting_network(node: Node, role: str, params: dict, default_epsilon: fl
                               f"not both: an exported policy is acted from as it is")
     num_actions, num_subgoals = domain_sizes(params["env"], params["view"])
     if params["policy"]:
+        require("deploy", f"policy:={params['policy']} (acting from an exported policy)", ("onnxruntime",))
         from hdrqn_ros.nodes.acting_onnx import OnnxActingNetwork
 
         return OnnxActingNetwork(node, role, params, default_epsilon, num_actions, num_subgoals)
@@ -103,7 +105,8 @@ def make_acting_network(node: Node, role: str, params: dict, default_epsilon: fl
     return TorchActingNetwork(node, role, params, default_epsilon, num_actions, num_subgoals)
 
 
-STARTUP_ERRORS = (NodeConfigError, ParameterError, RosArgsError, BackendError, PolicyError, FileNotFoundError)
+STARTUP_ERRORS = (NodeConfigError, ParameterError, RosArgsError, BackendError, PolicyError, MissingExtra,
+                  FileNotFoundError)
 """What every node reports as bad input: exit code 2 (a node adds its own to :func:`run_node`,
 so that a node imports only what it uses: the environment and critic stay small)."""
 

@@ -1,13 +1,21 @@
 """A kinematic robot on the gridworld / four-rooms map: the core of the loopback robot.
 
-Like Nav2's ``nav2_loopback_sim``: no physics, only kinematics. Map frame in metres: map
-cell (row ``r``, col ``c``) of the 11x11 map has its centre at ``x = (c + 0.5) * cell``,
-``y = (10 - r + 0.5) * cell`` (row 0 is the top, the largest y), so the gridworld's "up"
-is +y and "right" +x. The robot is a disc of ``robot_radius_m`` (a hair under half a cell,
-so it fits the one-cell corridors); walls stop it at contact. Each episode's layout (the
-robot's start cell and the goals' cells) is the simulator's for the same seed, fires left
-out (:class:`~hdrqn_ros.envs.grid_batch.GridWorldBatch` with ``obstacles=False``). Costmaps
-use Nav2's ``OccupancyGrid`` values: 100 wall, 0 free, -1 outside the map. No ROS.
+Like Nav2's ``nav2_loopback_sim``: no physics, only kinematics, no ROS. Conventions:
+
+* Map frame, metres. Map cell (row ``r``, col ``c``) of the 11x11 map (``MAP_SIZE``) has its
+  centre at ``x = (c + 0.5) * cell``, ``y = (MAP_SIZE - 1 - r + 0.5) * cell`` (``cell`` =
+  ``cell_size_m``, default 0.25 m): row 0 is the top (the largest y), so the gridworld's "up"
+  (row - 1) is +y and "right" (col + 1) is +x. The map covers ``[0, 11 cell] x [0, 11 cell]``.
+* Pose ``(x, y, yaw)``: m, m, rad; yaw 0 faces +x, counter-clockwise positive, in (-pi, pi].
+  Velocities are body-frame ``(vx, vy, wz)``: m/s forward, m/s to the left, rad/s.
+* The robot is a disc of ``robot_radius_m`` (under half a cell, so it fits the one-cell
+  corridors); walls and the map's edge stop it at contact.
+* Costmaps hold Nav2's ``OccupancyGrid`` values, cell by cell at ``resolution_m`` (default
+  0.05 m, 5 costmap cells per map cell): 100 wall, 0 free, -1 outside the map.
+
+Each episode's layout (the robot's start cell and the goals' cells) is the simulator's for
+the same seed, fires left out (:class:`~hdrqn_ros.envs.grid_batch.GridWorldBatch` with
+``obstacles=False``).
 """
 from __future__ import annotations
 
@@ -18,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hdrqn_ros.envs.grid_batch import GridWorldBatch
-from hdrqn_ros.envs.grid_layout import MAP_SIZE
+from hdrqn_ros.envs.grid_layout import ACTION_DELTAS, MAP_SIZE
 
 FREE_COST, WALL_COST, UNKNOWN_COST = 0, 100, -1
 
@@ -27,26 +35,37 @@ FREE_COST, WALL_COST, UNKNOWN_COST = 0, 100, -1
 class Layout:
     """One episode's places."""
 
-    episode: int
+    episode: int  # 0, 1, ... since construction
     agent_cell: tuple[int, int]  # (row, col)
-    goal_cells: tuple[tuple[int, int], ...]
-    goal_xy: np.ndarray  # (n_goals, 2) m, map frame, cell centres
+    goal_cells: tuple[tuple[int, int], ...]  # (row, col) of goal 0, 1, ...
+    goal_xy: np.ndarray  # (n_goals, 2) float, m, map frame: the goal cells' centres
 
 
 @dataclass(frozen=True)
 class Costmap:
-    """An OccupancyGrid's content: ``data`` (height, width) int8, row 0 at the origin's y."""
+    """An OccupancyGrid's content."""
 
-    origin_xy: tuple[float, float]  # m, lower-left corner of cell (0, 0)
+    origin_xy: tuple[float, float]  # m, map frame: lower-left corner of cell (0, 0)
     resolution_m: float
     width: int
     height: int
-    data: np.ndarray
+    data: np.ndarray  # (height, width) int8, row 0 at the origin's y (OccupancyGrid row-major order)
 
 
-def _finite(name: str, *values: float) -> None:
-    if not all(math.isfinite(float(v)) for v in values):
-        raise ValueError(f"{name} must be finite, got {values}")
+def _number(name: str, value, positive: bool = False) -> float:
+    """``value`` as a float; ValueError naming ``name`` unless it is a finite (positive) number."""
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+    if not ok or not math.isfinite(value) or (positive and value <= 0):
+        raise ValueError(f"{name} must be a {'positive' if positive else 'finite'} number, got {value!r}")
+    return float(value)
+
+
+def _arc(vx: float, vy: float, wz: float, t: float) -> tuple[float, float]:
+    """Body-frame displacement (m) after holding (vx, vy, wz) for ``t`` s (exact, on a circle)."""
+    if wz == 0.0:
+        return vx * t, vy * t
+    along, across = math.sin(wz * t) / wz, 2.0 * math.sin(wz * t / 2) ** 2 / wz  # sin/w, (1 - cos)/w
+    return vx * along - vy * across, vx * across + vy * along
 
 
 class LoopbackWorld:
@@ -55,37 +74,41 @@ class LoopbackWorld:
     def __init__(self, layout: str = "gridworld", n_goals: int = 2, seed: int = 0, *, cell_size_m: float = 0.25,
                  resolution_m: float = 0.05, robot_radius_m: float = 0.12, nav_speed_m_s: float = 0.25,
                  holonomic: bool = True):
-        for name, value in (("cell_size_m", cell_size_m), ("resolution_m", resolution_m),
-                            ("robot_radius_m", robot_radius_m), ("nav_speed_m_s", nav_speed_m_s)):
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a positive number, got {value!r}")
-        if robot_radius_m >= cell_size_m / 2:
-            raise ValueError(f"robot_radius_m must be under half a cell ({cell_size_m / 2} m), got {robot_radius_m}")
+        if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+        self.cell = _number("cell_size_m", cell_size_m, positive=True)
+        self.resolution = _number("resolution_m", resolution_m, positive=True)
+        self.radius = _number("robot_radius_m", robot_radius_m, positive=True)
+        self.nav_speed = _number("nav_speed_m_s", nav_speed_m_s, positive=True)
+        if self.radius >= self.cell / 2:
+            raise ValueError(f"robot_radius_m must be under half a cell ({self.cell / 2} m), got {robot_radius_m}")
+        if not isinstance(holonomic, (bool, np.bool_)):
+            raise ValueError(f"holonomic must be true or false, got {holonomic!r}")
         self.sim = GridWorldBatch(1, layout=layout, n_goals=n_goals, obstacles=False)  # draws the layouts
         self.walls = self.sim.walls  # (11, 11) bool
-        self.seed, self.cell, self.resolution = int(seed), float(cell_size_m), float(resolution_m)
-        self.radius, self.nav_speed, self.holonomic = float(robot_radius_m), float(nav_speed_m_s), bool(holonomic)
+        self.seed, self.holonomic = int(seed), bool(holonomic)
         self.layout: Layout | None = None
         self.time_s = 0.0
         self.x = self.y = self.yaw = 0.0
         self._velocity = (0.0, 0.0, 0.0)  # body frame, what the last advance achieved
         self._command: tuple[float, float, float] | None = None
         self._command_left_s = 0.0
-        self._path: deque[tuple[float, float]] = deque()  # the navigator's waypoints
+        self._path: deque[tuple[float, float]] = deque()  # the navigator's waypoints, m
 
     # -- geometry --------------------------------------------------------------------------------------
     def cell_centre(self, row: int, col: int) -> tuple[float, float]:
+        """(x, y) m of the centre of map cell (row, col)."""
         return (col + 0.5) * self.cell, (MAP_SIZE - 1 - row + 0.5) * self.cell
 
     def cell_of(self, x: float, y: float) -> tuple[int, int]:
-        """(row, col) of the map cell holding (x, y) (may lie off the map)."""
+        """(row, col) of the map cell holding (x, y) m (may lie off the map)."""
         return MAP_SIZE - 1 - math.floor(y / self.cell), math.floor(x / self.cell)
 
     def _blocked(self, row: int, col: int) -> bool:
         return not (0 <= row < MAP_SIZE and 0 <= col < MAP_SIZE) or bool(self.walls[row, col])
 
     def _fits(self, x: float, y: float) -> bool:
-        """The disc at (x, y) overlaps no wall cell and stays on the map."""
+        """The disc at (x, y) overlaps no wall cell and stays on the map (touching is allowed)."""
         r, c = self.cell_of(x, y)
         for row in range(r - 1, r + 2):
             for col in range(c - 1, c + 2):
@@ -122,39 +145,45 @@ class LoopbackWorld:
 
     @property
     def velocity(self) -> tuple[float, float, float]:
-        """Body-frame (vx, vy) m/s and wz rad/s over the last advance (0 while stopped or blocked)."""
+        """Body-frame (vx, vy) m/s and wz rad/s averaged over the last advance (what odometry
+        reports; 0 while stopped or blocked)."""
         return self._velocity
 
     @property
     def moving(self) -> bool:
+        """A command or a navigation is under way."""
         return self._command is not None or bool(self._path)
 
     def stop(self) -> None:
+        """Drop any command and navigation; the robot stands still."""
         self._command, self._command_left_s, self._velocity = None, 0.0, (0.0, 0.0, 0.0)
         self._path.clear()
 
     def command(self, vx: float, vy: float, wz: float, duration_s: float) -> None:
         """Hold body-frame velocity (vx, vy m/s, wz rad/s) for ``duration_s`` simulated
-        seconds, then stop (a deadman timeout); replaces any command or navigation. A
-        differential-drive robot (``holonomic`` false) ignores ``vy``."""
-        _finite("velocity", vx, vy, wz)
-        if not (math.isfinite(duration_s) and duration_s > 0):
-            raise ValueError(f"duration_s must be a positive number, got {duration_s!r}")
+        seconds from now, then stop (a deadman timeout); replaces any command or navigation.
+        A differential-drive robot (``holonomic`` false) ignores ``vy``."""
+        velocity = tuple(_number(f"velocity {name}", v) for name, v in (("vx", vx), ("vy", vy), ("wz", wz)))
+        duration = _number("duration_s", duration_s, positive=True)
         self.stop()
-        self._command = (float(vx), float(vy) if self.holonomic else 0.0, float(wz))
-        self._command_left_s = float(duration_s)
+        self._command = (velocity[0], velocity[1] if self.holonomic else 0.0, velocity[2])
+        self._command_left_s = duration
 
     def navigate_to(self, x: float, y: float) -> None:
         """Drive along a shortest 4-connected path of free cells, through their centres,
-        then to (x, y), at ``nav_speed_m_s`` (a navigator stand-in); replaces any command."""
-        _finite("goal", x, y)
+        then to (x, y) m, at ``nav_speed_m_s``, and stop there (a navigator stand-in);
+        replaces any command or navigation. ValueError for a point in a wall, off the map,
+        closer to a wall than ``robot_radius_m`` or unreachable."""
+        x, y = _number("goal x", x), _number("goal y", y)
         goal = self.cell_of(x, y)
         if self._blocked(*goal):
             raise ValueError(f"goal ({x:.3f}, {y:.3f}) is in a wall or off the map (cell {goal})")
+        if not self._fits(x, y):
+            raise ValueError(f"goal ({x:.3f}, {y:.3f}) is closer to a wall than robot_radius_m ({self.radius} m)")
         cells = self._shortest_path(self.cell_of(self.x, self.y), goal)
         self.stop()
         self._path.extend(self.cell_centre(*c) for c in cells)
-        self._path.append((float(x), float(y)))
+        self._path.append((x, y))
 
     def _shortest_path(self, start: tuple[int, int], goal: tuple[int, int]) -> list[tuple[int, int]]:
         """The cells from ``start`` to ``goal`` (both included), breadth first."""
@@ -168,7 +197,7 @@ class LoopbackWorld:
                     path.append(cell)
                     cell = came_from[cell]
                 return path[::-1]
-            for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            for dr, dc in ACTION_DELTAS:
                 nxt = (cell[0] + dr, cell[1] + dc)
                 if nxt not in came_from and not self._blocked(*nxt):
                     came_from[nxt] = cell
@@ -176,72 +205,83 @@ class LoopbackWorld:
         raise ValueError(f"no free path from cell {start} to cell {goal}")
 
     def advance(self, dt_s: float) -> None:
-        """Integrate ``dt_s`` simulated seconds (a command's last interval is clipped to its
-        duration, so it moves exactly speed x duration unless a wall stops it)."""
-        if not (math.isfinite(dt_s) and dt_s > 0):
-            raise ValueError(f"dt_s must be a positive number, got {dt_s!r}")
-        x0, y0, yaw0 = self.x, self.y, self.yaw
+        """Integrate ``dt_s`` simulated seconds. A command moves exactly along its circle (or
+        line), its last interval clipped to its duration, so the end pose does not depend
+        on the tick unless a wall stops it."""
+        dt = _number("dt_s", dt_s, positive=True)
         if self._command is not None:
-            step = min(dt_s, self._command_left_s)
-            vx, vy, wz = self._command
-            c, s = math.cos(self.yaw), math.sin(self.yaw)
-            self._move((vx * c - vy * s) * step, (vx * s + vy * c) * step)
-            self.yaw = math.remainder(self.yaw + wz * step, 2 * math.pi)
-            self._command_left_s -= step
-            if self._command_left_s <= 1e-12:
-                self._command = None
+            self._velocity = self._follow_command(dt)
         elif self._path:
-            budget = self.nav_speed * dt_s
-            while self._path and budget > 0:
-                tx, ty = self._path[0]
-                distance = math.hypot(tx - self.x, ty - self.y)
-                if distance <= budget:
-                    self.x, self.y = tx, ty
-                    self._path.popleft()
-                    budget -= distance
-                else:
-                    self._move((tx - self.x) * budget / distance, (ty - self.y) * budget / distance)
-                    budget = 0.0
-        dx, dy = self.x - x0, self.y - y0
-        c, s = math.cos(yaw0), math.sin(yaw0)
-        self._velocity = ((dx * c + dy * s) / dt_s, (-dx * s + dy * c) / dt_s,
-                          math.remainder(self.yaw - yaw0, 2 * math.pi) / dt_s)
-        self.time_s += dt_s
+            self._velocity = self._follow_path(dt)
+        else:
+            self._velocity = (0.0, 0.0, 0.0)
+        self.time_s += dt
 
-    def _move(self, dx: float, dy: float) -> None:
-        """Translate by (dx, dy), cut at the first contact with a wall."""
-        if self._fits(self.x + dx, self.y + dy):
-            self.x, self.y = self.x + dx, self.y + dy
-            return
-        free, blocked = 0.0, 1.0
-        for _ in range(40):  # the largest free fraction of the move, to ~1e-12 of it
-            mid = (free + blocked) / 2
-            free, blocked = (mid, blocked) if self._fits(self.x + mid * dx, self.y + mid * dy) else (free, mid)
-        self.x, self.y = self.x + free * dx, self.y + free * dy
+    def _follow_command(self, dt: float) -> tuple[float, float, float]:
+        step = min(dt, self._command_left_s)
+        vx, vy, wz = self._command
+        bx, by = _arc(vx, vy, wz, step)
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        done = self._move(bx * c - by * s, bx * s + by * c)  # a wall cuts the chord; turning goes on
+        self.yaw = math.remainder(self.yaw + wz * step, 2 * math.pi)
+        self._command_left_s -= step
+        if self._command_left_s <= 1e-12:
+            self._command = None
+        return vx * done * step / dt, vy * done * step / dt, wz * step / dt
+
+    def _follow_path(self, dt: float) -> tuple[float, float, float]:
+        x0, y0 = self.x, self.y
+        budget = self.nav_speed * dt
+        while self._path and budget > 0:
+            tx, ty = self._path[0]
+            distance = math.hypot(tx - self.x, ty - self.y)
+            if distance <= budget:
+                self.x, self.y = tx, ty
+                self._path.popleft()
+                budget -= distance
+            else:
+                self._move((tx - self.x) * budget / distance, (ty - self.y) * budget / distance)
+                budget = 0.0
+        dx, dy, c, s = self.x - x0, self.y - y0, math.cos(self.yaw), math.sin(self.yaw)
+        return (dx * c + dy * s) / dt, (-dx * s + dy * c) / dt, 0.0
+
+    def _move(self, dx: float, dy: float) -> float:
+        """Translate by (dx, dy) m, cut at the first contact with a wall; returns the fraction
+        moved. Checked in pieces of a quarter radius, so that no move jumps a wall."""
+        x0, y0, length = self.x, self.y, math.hypot(dx, dy)
+        pieces = max(1, math.ceil(length / (self.radius / 4)))
+        free = 0.0
+        for i in range(1, pieces + 1):
+            blocked = i / pieces
+            if not self._fits(x0 + blocked * dx, y0 + blocked * dy):
+                for _ in range(40):  # bisect to the contact, to ~1e-12 of the piece
+                    mid = (free + blocked) / 2
+                    free, blocked = (mid, blocked) if self._fits(x0 + mid * dx, y0 + mid * dy) else (free, mid)
+                free = 0.0 if free * length < 1e-9 else free  # already touching: blocked, not creeping
+                break
+            free = blocked
+        self.x, self.y = x0 + free * dx, y0 + free * dy
+        return free
 
     # -- costmaps --------------------------------------------------------------------------------------
-    def _costs(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
-        """Cost of the points (xs[None, :], ys[:, None]): wall 100, free 0, off the map -1."""
+    def _costmap(self, origin_x: float, origin_y: float, width: int, height: int) -> Costmap:
+        """The costmap of the given cells, each costed at its centre."""
+        xs = origin_x + (np.arange(width) + 0.5) * self.resolution
+        ys = origin_y + (np.arange(height) + 0.5) * self.resolution
         cols = np.floor(xs / self.cell).astype(np.int64)[None, :]
         rows = (MAP_SIZE - 1 - np.floor(ys / self.cell)).astype(np.int64)[:, None]
         inside = (rows >= 0) & (rows < MAP_SIZE) & (cols >= 0) & (cols < MAP_SIZE)
         wall = self.walls[rows.clip(0, MAP_SIZE - 1), cols.clip(0, MAP_SIZE - 1)]
-        return np.where(inside, np.where(wall, WALL_COST, FREE_COST), UNKNOWN_COST).astype(np.int8)
-
-    def _costmap(self, origin_x: float, origin_y: float, width: int, height: int) -> Costmap:
-        res = self.resolution
-        data = self._costs(origin_x + (np.arange(width) + 0.5) * res, origin_y + (np.arange(height) + 0.5) * res)
-        return Costmap((origin_x, origin_y), res, width, height, data)
+        data = np.where(inside, np.where(wall, WALL_COST, FREE_COST), UNKNOWN_COST).astype(np.int8)
+        return Costmap((origin_x, origin_y), self.resolution, width, height, data)
 
     def local_costmap(self, size_m: float = 3.0) -> Costmap:
-        """A rolling ``size_m`` square window centred on the robot, its origin snapped to
-        the resolution grid (as Nav2's rolling local costmap)."""
-        if not (math.isfinite(size_m) and size_m > 0):
-            raise ValueError(f"size_m must be a positive number, got {size_m!r}")
-        cells = max(1, round(size_m / self.resolution))
-        res = self.resolution
-        return self._costmap(math.floor((self.x - size_m / 2) / res + 1e-9) * res,
-                             math.floor((self.y - size_m / 2) / res + 1e-9) * res, cells, cells)
+        """A rolling ``size_m`` x ``size_m`` window centred on the robot, its origin snapped
+        to the resolution grid (as Nav2's rolling local costmap)."""
+        size = _number("size_m", size_m, positive=True)
+        res, cells = self.resolution, max(1, round(size / self.resolution))
+        return self._costmap(math.floor((self.x - size / 2) / res + 1e-9) * res,
+                             math.floor((self.y - size / 2) / res + 1e-9) * res, cells, cells)
 
     def global_costmap(self) -> Costmap:
         """The whole map, origin (0, 0)."""

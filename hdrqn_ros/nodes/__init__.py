@@ -1,0 +1,1 @@
+"""The ROS 2 nodes: thin adapters from messages to the core (see docs/topics.md)."""

@@ -1,0 +1,1 @@
+"""Training: the in-process trainer, the learner, checkpoints, metrics, offline training, export."""

@@ -294,3 +294,41 @@ def test_episodes_start_and_stop_on_request(tmp_path, checkpoint, domain, monkey
         probe.close()
     assert probe.steps[ended - 1]["truncated"] == 1 and len(probe.steps) == ended
     assert read_jsonl(log)[0]["steps"] < 50
+
+
+@NO_RCLPY
+def test_param_set_on_the_robot_nodes(tmp_path, checkpoint, domain, monkeypatch):
+    """``ros2 param set`` on the robot's nodes: a new ``step_period`` holds from the next step
+    (the step keys are simulated ns); read-only and out-of-range values are refused with a reason."""
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+
+    monkeypatch.setenv("HDRQN_MIDDLEWARE", "rclpy")
+    probe = Probe("rclpy")
+    sup, _ = start(tmp_path, checkpoint, "sub-drives", episodes=50)
+
+    def result(future, what: str):
+        probe.until(future.done, 30, what, sup)
+        return future.result()
+
+    try:
+        env = AsyncParameterClient(probe.node._node, "/robot_environment")
+        robot = AsyncParameterClient(probe.node._node, "/loopback_robot")
+        probe.until(lambda: env.services_are_ready() and robot.services_are_ready(), 120, "parameter services", sup)
+        probe.until(lambda: len(probe.steps) >= 3, 120, "the robot stepping", sup)
+        for client, name, value, words in ((env, "pose_topic", "/elsewhere", "read-only"),
+                                           (env, "goal_tolerance", -1.0, "must be > 0"),
+                                           (env, "lethal", 500, "out of range"),
+                                           (robot, "lockstep", "off", "read-only"),
+                                           (robot, "nav_speed", 0.0, "must be > 0")):
+            outcome = result(client.set_parameters([Parameter(name, value=value)]), name).results[0]
+            assert not outcome.successful and words in outcome.reason and name in outcome.reason, outcome.reason
+        assert result(env.set_parameters([Parameter("step_period", value=5.0)]), "step_period").results[0].successful
+        seen = len(probe.steps)
+        probe.until(lambda: len(probe.steps) >= seen + 6, 120, "steps after the change", sup)
+    finally:
+        sup.stop()
+        probe.close()
+    gaps = {int(b["key"] - a["key"]) for a, b in zip(probe.steps[seen + 1:], probe.steps[seen + 2:])
+            if b["prev_key"] == a["key"]}
+    assert gaps == {5 * 10**9}, gaps

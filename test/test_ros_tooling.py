@@ -226,11 +226,67 @@ def test_parameters_through_the_parameter_services(graph):
     sub = AsyncParameterClient(graph.node, "/sub_controller")
     reply = graph.result(sub.get_parameters(["action_table", "observation_source"]), 10, "sub_controller")
     assert [parameter_value_to_python(v) for v in reply.values] == [str(CONFIG / "nav2" / "actions.yaml"), "topic"]
-    # ``ros2 param set``: accepted (no node rejects a change), though read only at start-up
-    result = graph.result(env.set_parameters([Parameter("action_timeout", value=6.0)]), 10, "set_parameters")
-    assert [r.successful for r in result.results] == [True]
-    reply = graph.result(env.get_parameters(["action_timeout"]), 10, "environment")
-    assert parameter_value_to_python(reply.values[0]) == 6.0
+
+
+REFUSED = {  # node: (parameter, value, words the reason must hold)
+    "environment": [("algo", "nonsense", "read-only"), ("num_envs", 99999, "read-only"),
+                    ("action_timeout", -1.0, "must be > 0"), ("action_timeout", "soon", "type")],
+    "critic": [("env", "hdrqn/FourRooms-2Goals-v0", "read-only"), ("option_timeout", -5.0, "out of range")],
+    "meta_controller": [("checkpoint", "/nonexistent.pt", "read-only"), ("epsilon", 5.0, "out of range")],
+    "sub_controller": [("algo", "nonsense", "read-only"), ("epsilon", 5.0, "out of range"),
+                       ("num_envs", 99999, "read-only"), ("checkpoint", "/nonexistent.pt", "read-only"),
+                       ("stale_after_s", 0.0, "must be > 0"), ("epsilon", "zero", "type")],
+    "learner": [("episodes", 5, "read-only"), ("record", "/tmp/x", "read-only")],
+}
+"""What ``ros2 param set`` must refuse, per node kind (issue 27's measured four among them)."""
+ACCEPTED = {"environment": ("action_timeout", 6.0), "critic": ("option_timeout", 0.0),
+            "meta_controller": ("epsilon", 0.0), "sub_controller": ("epsilon", 0.0)}
+"""A live parameter per node kind that ``ros2 param set`` changes (the value is the node's already
+or harmless for the running graph)."""
+
+
+def test_param_set_refuses_with_a_reason_and_accepts_live_ones(graph):
+    """``ros2 param set``: read-only, out-of-range and wrongly typed values are refused with a
+    reason naming the parameter or the rule, and the node keeps its value; a live parameter
+    is changed, and the node logs it."""
+    for node, cases in REFUSED.items():
+        client = AsyncParameterClient(graph.node, f"/{node}")
+        graph.mw.spin(until=client.services_are_ready, timeout_s=30)
+        for name, value, words in cases:
+            before = graph.result(client.get_parameters([name]), 10, f"{node} {name}").values[0]
+            result = graph.result(client.set_parameters([Parameter(name, value=value)]), 10, f"set {node} {name}")
+            outcome = result.results[0]
+            assert not outcome.successful, f"/{node} accepted {name}={value!r}"
+            assert words in outcome.reason.lower(), f"/{node} {name}: {outcome.reason!r}"
+            assert words == "type" or name in outcome.reason, f"/{node} {name}: {outcome.reason!r}"  # rclpy's own
+            # type check names the expected type only (one parameter per call here)
+            after = graph.result(client.get_parameters([name]), 10, f"{node} {name}").values[0]
+            assert parameter_value_to_python(after) == parameter_value_to_python(before)
+    for node, (name, value) in ACCEPTED.items():
+        client = AsyncParameterClient(graph.node, f"/{node}")
+        result = graph.result(client.set_parameters([Parameter(name, value=value)]), 10, f"set {node} {name}")
+        assert [r.successful for r in result.results] == [True], f"/{node} {name}: {result.results[0].reason}"
+        reply = graph.result(client.get_parameters([name]), 10, f"{node} {name}")
+        assert parameter_value_to_python(reply.values[0]) == value
+        eventually(lambda: None if any(f"parameter {name} set to" in m.msg and m.name == node for m in graph.rosout)
+                   else "no log line yet", graph.spin, 30, f"/{node}'s log of {name}")
+
+
+def test_param_describe_shows_descriptions_and_rules(graph):
+    """``ros2 param describe``: every declared parameter has a description; read-only ones say
+    so; ranges are the descriptor's."""
+    for node in NODES:
+        client = AsyncParameterClient(graph.node, f"/{node}")
+        graph.mw.spin(until=client.services_are_ready, timeout_s=30)
+        names = sorted(set(DECLARED[node]) - RCLPY_PARAMETERS)
+        descriptors = {d.name: d for d in graph.result(client.describe_parameters(names), 10, node).descriptors}
+        for name in names:
+            assert descriptors[name].description, f"/{node} {name} has no description"
+        assert descriptors["algo"].read_only and "read-only" in descriptors["algo"].additional_constraints
+    sub = AsyncParameterClient(graph.node, "/sub_controller")
+    epsilon = graph.result(sub.describe_parameters(["epsilon"]), 10, "epsilon").descriptors[0]
+    assert not epsilon.read_only
+    assert (epsilon.floating_point_range[0].from_value, epsilon.floating_point_range[0].to_value) == (-1.0, 1.0)
 
 
 def test_node_and_topic_introspection_matches_the_docs(graph):

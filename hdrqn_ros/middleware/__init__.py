@@ -4,7 +4,7 @@ from __future__ import annotations
 import os
 
 from hdrqn_ros.middleware.port import (DEFAULT_QOS, LATCHED_QOS, BackendError, Middleware, Node, ParameterError,
-                                       QoS, RosArgsError)
+                                       ParameterRule, QoS, RosArgsError)
 
 BACKEND_ENV = "HDRQN_MIDDLEWARE"
 """``auto`` (default: rclpy when importable, else Cyclone DDS), ``rclpy`` or ``cyclone``."""
@@ -40,4 +40,4 @@ def open_middleware(argv: list[str] | None = None, backend: str | None = None) -
 
 
 __all__ = ["open_middleware", "chosen_backend", "Middleware", "Node", "QoS", "DEFAULT_QOS", "LATCHED_QOS",
-           "BackendError", "ParameterError", "RosArgsError", "BACKEND_ENV", "BACKENDS"]
+           "BackendError", "ParameterError", "ParameterRule", "RosArgsError", "BACKEND_ENV", "BACKENDS"]

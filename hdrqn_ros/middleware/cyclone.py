@@ -34,7 +34,7 @@ from cyclonedds.util import duration
 
 from hdrqn_ros.middleware.messages import DecodeError, decode, message_class
 from hdrqn_ros.middleware.network import LOOPBACK, cyclone_config, interface_address
-from hdrqn_ros.middleware.port import DEFAULT_QOS, Middleware, Node, QoS
+from hdrqn_ros.middleware.port import DEFAULT_QOS, Middleware, Node, ParameterError, ParameterRule, QoS
 from hdrqn_ros.middleware.ros_args import (check_overrides, check_parameter_type, process_settings,
                                            remap_and_resolve, split_ros_args)
 from hdrqn_ros.throttle import Throttle
@@ -176,13 +176,17 @@ class CycloneNode(Node):
         self.middleware.wake()
         return timer
 
-    def declare_parameters(self, defaults: dict[str, Any],
-                           overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    def declare_parameters(self, defaults: dict[str, Any], overrides: dict[str, Any] | None = None,
+                           rules: dict[str, ParameterRule] | None = None) -> dict[str, Any]:
         given = {**self.middleware.ros_args.parameters_for(self.name, self.namespace),
                  **check_overrides(self.fully_qualified_name, defaults, overrides)}
         for name, default in defaults.items():
             value = given.get(name, default)
             self.parameters[name] = check_parameter_type(self.fully_qualified_name, name, default, value)
+            rule = (rules or {}).get(name)
+            if rule is not None and (rule.low is not None or rule.high is not None) and \
+                    (why := rule.refusal(name, self.parameters[name])):
+                raise ParameterError(f"node {self.fully_qualified_name}: {why}")
         return {name: self.parameters[name] for name in defaults}
 
     def destroy(self) -> None:

@@ -36,6 +36,45 @@ LATCHED_QOS = QoS(depth=1, transient_local=True)
 """Reliable, transient-local, keep-last 1: late joiners get the last sample (weights, status)."""
 
 
+@dataclass(frozen=True)
+class ParameterRule:
+    """What ``ros2 param describe`` shows of a parameter and what ``ros2 param set`` may do
+    to it: a one-line ``description``; ``live`` parameters may change while the node runs
+    (the node applies the new value at its next use), the others are read-only; ``low`` /
+    ``high`` bound a number (inclusive, shown as the descriptor's range); ``positive``
+    asks for > 0; ``choices`` lists the allowed strings."""
+
+    description: str
+    live: bool = False
+    low: float | None = None
+    high: float | None = None
+    positive: bool = False
+    choices: tuple[str, ...] = ()
+
+    def refusal(self, name: str, value: Any) -> str | None:
+        """Why ``value`` is not allowed for parameter ``name`` (``None``: it is)."""
+        if self.choices and value not in self.choices:
+            return f"parameter {name} must be one of {list(self.choices)}, got {value!r}"
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if value != value:  # NaN
+                return f"parameter {name} must be a number, got nan"
+            if self.positive and not value > 0:
+                return f"parameter {name} must be > 0, got {value!r}"
+            if self.low is not None and value < self.low or self.high is not None and value > self.high:
+                return f"parameter {name} must be in {self.low:g}..{self.high:g}, got {value!r}"
+        return None
+
+    @property
+    def constraints(self) -> str:
+        """The rules in words (the descriptor's ``additional_constraints``)."""
+        words = [] if self.live else ["read-only while the node runs"]
+        if self.positive:
+            words.append("> 0")
+        if self.choices:
+            words.append("one of " + ", ".join(self.choices))
+        return "; ".join(words)
+
+
 class Publisher(Protocol):
     def publish(self, msg: Any) -> None:
         """Publish a message of the topic's type, or its CDR bytes (header first) as they are."""
@@ -100,13 +139,21 @@ class Node(ABC):
     backend_name = "this"
 
     @abstractmethod
-    def declare_parameters(self, defaults: dict[str, Any],
-                           overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    def declare_parameters(self, defaults: dict[str, Any], overrides: dict[str, Any] | None = None,
+                           rules: dict[str, ParameterRule] | None = None) -> dict[str, Any]:
         """Declare parameters with their defaults; returns their values after overrides
         from ``--ros-args -p name:=value`` and ``--params-file``, then from ``overrides``
         (values given in Python by code that builds the node in-process; they win, like
         rclpy's ``Node(parameter_overrides=...)``). A value whose type differs from the
-        default's, or an override without a default, raises :class:`ParameterError`."""
+        default's, or an override without a default, raises :class:`ParameterError`.
+        ``rules`` describe them (rclpy: their descriptors; a value outside a rule's range
+        raises :class:`ParameterError`)."""
+
+    def on_parameters_set(self, rules: dict[str, ParameterRule], apply: Callable[[str, Any], None]) -> None:
+        """Accept changes to the ``live`` parameters of ``rules`` at run time (``ros2 param
+        set``): each is checked against its rule (a refusal names the parameter and the
+        rule), then ``apply(name, value)`` is called. The Cyclone backend has no parameter
+        services: nothing to do there."""
 
     @property
     @abstractmethod

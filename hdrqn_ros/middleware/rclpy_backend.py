@@ -24,6 +24,7 @@ try:
     import rclpy.node
     from rclpy.clock import Clock, ClockType
     from rclpy.context import Context
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
     from rclpy.exceptions import InvalidParameterTypeException
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.parameter import Parameter
@@ -38,7 +39,8 @@ else:
 import numpy as np
 
 from hdrqn_ros.middleware.network import apply_rmw_network_defaults
-from hdrqn_ros.middleware.port import DEFAULT_QOS, Middleware, Node, ParameterError, Publisher, QoS, RosArgsError
+from hdrqn_ros.middleware.port import (DEFAULT_QOS, Middleware, Node, ParameterError, ParameterRule, Publisher, QoS,
+                                       RosArgsError)
 from hdrqn_ros.middleware.ros_args import ProcessSettings, check_overrides, process_settings, split_ros_args
 from hdrqn_ros.throttle import Throttle
 
@@ -109,6 +111,21 @@ def _qos_profile(qos: QoS) -> QoSProfile:
         reliability=ReliabilityPolicy.RELIABLE if qos.reliable else ReliabilityPolicy.BEST_EFFORT,
         durability=DurabilityPolicy.TRANSIENT_LOCAL if qos.transient_local else DurabilityPolicy.VOLATILE,
     )
+
+
+def _descriptor(rule: ParameterRule | None, default: Any) -> ParameterDescriptor:
+    """The rclpy descriptor of a parameter's rule (none: an undescribed, read-write one)."""
+    if rule is None:
+        return ParameterDescriptor()
+    descriptor = ParameterDescriptor(description=rule.description, read_only=not rule.live,
+                                     additional_constraints=rule.constraints)
+    if rule.low is not None and rule.high is not None and not isinstance(default, bool):
+        if isinstance(default, int):
+            descriptor.integer_range = [IntegerRange(from_value=int(rule.low), to_value=int(rule.high), step=0)]
+        elif isinstance(default, float):
+            descriptor.floating_point_range = [FloatingPointRange(from_value=float(rule.low),
+                                                                  to_value=float(rule.high), step=0.0)]
+    return descriptor
 
 
 class _RcutilsHandler(logging.Handler):
@@ -206,30 +223,58 @@ class RclpyNode(Node):
             raise ValueError(f"timer period must be > 0 s, got {period_s}")
         return self._node.create_timer(period_s, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
-    def declare_parameters(self, defaults: dict[str, Any],
-                           overrides: dict[str, Any] | None = None) -> dict[str, Any]:
-        """Declare each parameter (already declared ones such as ``use_sim_time`` are read, not
-        redeclared), then set those in ``overrides``; a type mismatch with the default raises
-        :class:`ParameterError`."""
+    def declare_parameters(self, defaults: dict[str, Any], overrides: dict[str, Any] | None = None,
+                           rules: dict[str, ParameterRule] | None = None) -> dict[str, Any]:
+        """Declare each parameter with the descriptor of its rule (description, read-only
+        unless live, range; already declared ones such as ``use_sim_time`` are read, not
+        redeclared), with the values of ``overrides``; a type mismatch with the default or a
+        value out of range raises :class:`ParameterError`."""
         given = check_overrides(self.fully_qualified_name, defaults, overrides)
         values: dict[str, Any] = {}
         for name, default in defaults.items():
-            if self._node.has_parameter(name):
-                values[name] = self._node.get_parameter(name).value
-            else:
-                try:
-                    values[name] = self._node.declare_parameter(name, default).value
+            if not self._node.has_parameter(name):
+                rule = (rules or {}).get(name)
+                try:  # writable and unbounded while its start value is set, then its rule's descriptor
+                    self._node.declare_parameter(name, default)
                 except InvalidParameterTypeException as exc:
                     raise ParameterError(f"node {self.fully_qualified_name}: parameter {name!r} must be "
                                          f"{type(default).__name__} (default {default!r}): {exc}") from None
-            if name in given:  # typed as declared (an empty list would otherwise be a byte array)
-                declared = self._node.get_parameter(name).type_
-                result = self._node.set_parameters([Parameter(name, declared, given[name])])[0]
-                if not result.successful:
-                    raise ParameterError(f"node {self.fully_qualified_name}: parameter {name!r} cannot be set to "
-                                         f"{given[name]!r}: {result.reason}")
-                values[name] = self._node.get_parameter(name).value
+                self._set_typed(name, given)
+                value = self._node.get_parameter(name).value
+                if rule is not None and (why := rule.refusal(name, value)) and \
+                        (rule.low is not None or rule.high is not None):
+                    raise ParameterError(f"node {self.fully_qualified_name}: {why}")
+                descriptor = _descriptor(rule, default)
+                descriptor.type = self._node.get_parameter(name).type_.value
+                self._node.set_descriptor(name, descriptor)
+            else:  # rclpy's own (use_sim_time)
+                self._set_typed(name, given)
+            values[name] = self._node.get_parameter(name).value
         return values
+
+    def _set_typed(self, name: str, given: dict[str, Any]) -> None:
+        """Set ``given[name]`` (if given) typed as declared (an empty list would otherwise be a byte array)."""
+        if name not in given:
+            return
+        declared = self._node.get_parameter(name).type_
+        result = self._node.set_parameters([Parameter(name, declared, given[name])])[0]
+        if not result.successful:
+            raise ParameterError(f"node {self.fully_qualified_name}: parameter {name!r} cannot be set to "
+                                 f"{given[name]!r}: {result.reason}")
+
+    def on_parameters_set(self, rules: dict[str, ParameterRule], apply: Callable[[str, Any], None]) -> None:
+        def check_then_apply(parameters: list[Parameter]) -> SetParametersResult:
+            for parameter in parameters:
+                rule = rules.get(parameter.name)
+                if rule is not None and (why := rule.refusal(parameter.name, parameter.value)):
+                    return SetParametersResult(successful=False, reason=why)
+            for parameter in parameters:
+                if parameter.name in rules:
+                    apply(parameter.name, parameter.value)
+                    self._logger.info("parameter %s set to %r", parameter.name, parameter.value)
+            return SetParametersResult(successful=True)
+
+        self._node.add_on_set_parameters_callback(check_then_apply)
 
     @property
     def logger(self) -> logging.Logger:

@@ -14,12 +14,35 @@ import numpy as np
 from hdrqn_ros.deploy.specs import ALGO_SPECS, PolicyError
 from hdrqn_ros.envs.registration import GRID_IDS, MONTEZUMA_IDS, make_batch
 from hdrqn_ros.extras import MissingExtra, require
-from hdrqn_ros.middleware import BackendError, Middleware, Node, ParameterError, RosArgsError, open_middleware
+from hdrqn_ros.middleware import (BackendError, Middleware, Node, ParameterError, ParameterRule, RosArgsError,
+                                  open_middleware)
 from hdrqn_ros.protocol.wire import MAX_ENVS
 
 ENV_DEFAULTS = {"algo": "hdrqn-v2", "env": "hdrqn/GridWorld-2Goals-v0", "view": "5", "seed": 0}
 """Parameters every training-graph node declares (the launch files set them once for all
 nodes with a ``/**`` entry)."""
+ENV_RULES = {
+    "algo": ParameterRule("agent: hdrqn-v2, hdrqn-v1, hdqn, drqn or dqn",
+                          choices=("hdrqn-v2", "hdrqn-v1", "hdqn", "drqn", "dqn")),
+    "env": ParameterRule("environment id (hdrqn envs lists them)"),
+    "view": ParameterRule("gridworld view: an odd number of cells or 'full' (a string)"),
+    "seed": ParameterRule("seed of the environments and of the controllers' exploration"),
+    "num_envs": ParameterRule("environments the environment node steps as one batch (the same on every node of "
+                              "a group)", low=1, high=64),
+}
+"""The rules of the shared parameters (:class:`~hdrqn_ros.middleware.ParameterRule`): read-only."""
+
+
+def live_parameters(node: Node, params: dict, rules: dict[str, ParameterRule], apply=None) -> None:
+    """Let ``ros2 param set`` change the ``live`` parameters of ``rules``: each accepted
+    value goes into ``params`` (the node reads it at its next use), then to ``apply(name,
+    value)`` for a node that keeps a derived value."""
+    def accept(name: str, value) -> None:
+        params[name] = value
+        if apply is not None:
+            apply(name, value)
+
+    node.on_parameters_set({name: rule for name, rule in rules.items() if rule.live}, accept)
 
 
 class NodeConfigError(ValueError):
@@ -71,8 +94,15 @@ class ActingNetwork:
         self.node, self.role = node, role
         self.num_actions, self.num_subgoals = num_actions, num_subgoals
         self.rng = np.random.default_rng(params["seed"] + (7 if role == "meta" else 11))
-        self.fixed_epsilon = params["epsilon"] if params["epsilon"] >= 0 else None
-        self.epsilon = self.fixed_epsilon if self.fixed_epsilon is not None else default_epsilon
+        self.epsilon = default_epsilon
+        self.fixed_epsilon: float | None = None
+        self.set_fixed_epsilon(params["epsilon"])
+
+    def set_fixed_epsilon(self, epsilon: float) -> None:
+        """``epsilon`` >= 0: explore at this rate from now on; < 0: the learner's schedule again."""
+        self.fixed_epsilon = epsilon if epsilon >= 0 else None
+        if self.fixed_epsilon is not None:
+            self.epsilon = self.fixed_epsilon
 
     def on_credit(self, credit: dict) -> None:
         if self.fixed_epsilon is None:

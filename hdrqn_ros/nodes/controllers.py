@@ -20,10 +20,11 @@ import numpy as np
 from hdrqn_ros.agents.policy import HierarchicalPolicy
 from hdrqn_ros.deploy.specs import ALGO_SPECS, STATE_SIZE, stack_subgoal
 from hdrqn_ros.envs.domain import OBS_SIZE
-from hdrqn_ros.middleware import LATCHED_QOS, Middleware
+from hdrqn_ros.middleware import LATCHED_QOS, Middleware, ParameterRule
 from hdrqn_ros.nodes import nav
 from hdrqn_ros.protocol import wire
-from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, check_num_envs, make_acting_network, run_node
+from hdrqn_ros.nodes.common import (ENV_DEFAULTS, ENV_RULES, NodeConfigError, check_num_envs, live_parameters,
+                                    make_acting_network, run_node)
 from hdrqn_ros.nodes.ros_time import RosTime
 from hdrqn_ros.protocol.follower import StepFollower, all_done, done
 from hdrqn_ros.training.checkpoint import CheckpointError
@@ -42,6 +43,29 @@ after which the node says (once per quiet spell) what it waits for and which nod
 publish it; ``use_sim_time``: ROS time from ``/clock`` (the stale-input check). The Nav2 adapters add
 :data:`~hdrqn_ros.nodes.nav.META_PARAMETERS` / :data:`~hdrqn_ros.nodes.nav.SUB_PARAMETERS`."""
 
+CONTROLLER_RULES = {
+    **ENV_RULES,
+    "epsilon": ParameterRule("exploration rate; < 0: the learner's schedule (1.0 until it is heard from)", live=True,
+                             low=-1.0, high=1.0),
+    "checkpoint": ParameterRule("initial weights (RUN_DIR/checkpoints/last.pt; '': random until the learner's)"),
+    "policy": ParameterRule("instead of checkpoint: an exported policy directory (hdrqn export; frozen, no torch)"),
+    "meta_state": ParameterRule("hdrqn-v2: which LSTM state the meta-controller reads", choices=("c", "h")),
+    "quiet_input_s": ParameterRule("wall seconds without any input before the node says what it waits for",
+                                   live=True, positive=True),
+    "subgoal_table": ParameterRule("YAML table of the places, subgoal index -> pose ('': off)"),
+    "subgoal_poses_topic": ParameterRule("instead of subgoal_table: a latched geometry_msgs/PoseArray of the places"),
+    "goal_pose_topic": ParameterRule("where each new option's place goes (geometry_msgs/PoseStamped)"),
+    "action_table": ParameterRule("YAML table, action index -> velocity command ('': drive nothing)"),
+    "cmd_vel_topic": ParameterRule("where velocity commands go"),
+    "observation_source": ParameterRule("topic: the environment's observation; costmap: free-running on costmap_topic",
+                                        choices=("topic", "costmap")),
+    "costmap_topic": ParameterRule("the nav_msgs/OccupancyGrid observed with observation_source costmap"),
+    "stale_after_s": ParameterRule("an observation older than this (ROS time) stops the robot (zero command)",
+                                   live=True, positive=True),
+}
+"""Descriptions and rules of the controllers' parameters (``ros2 param describe``); live:
+``epsilon`` (takes effect at the next decision), ``quiet_input_s``, ``stale_after_s``."""
+
 
 class _Controller(StepFollower):
     role = ""
@@ -50,7 +74,8 @@ class _Controller(StepFollower):
 
     def __init__(self, mw: Middleware, name: str):
         node = mw.create_node(name)
-        params = self.params = node.declare_parameters({**CONTROLLER_PARAMETERS, **self.nav_parameters})
+        params = self.params = node.declare_parameters({**CONTROLLER_PARAMETERS, **self.nav_parameters},
+                                                       rules=CONTROLLER_RULES)
         n = check_num_envs(params["num_envs"])
         super().__init__(node, num_envs=n)
         if params["meta_state"] not in ("c", "h"):
@@ -62,6 +87,7 @@ class _Controller(StepFollower):
         self.quiet_reported: set[str] = set()
         node.create_timer(1.0, self._report_quiet_inputs)
         self.net = make_acting_network(node, self.role, params, default_epsilon=1.0)
+        live_parameters(node, params, CONTROLLER_RULES, self._apply)
         self.spec = ALGO_SPECS[params["algo"]]
         # this node's level of the policy, for the environments of the batch
         sub, meta = (self.net, None) if self.role == "sub" else (None, self.net)
@@ -71,6 +97,11 @@ class _Controller(StepFollower):
             self.expect(wire.ENV_STEP, "the environment node (environment, or robot_environment on a robot)")
             node.create_subscription(wire.FLOATS, wire.ENV_STEP, self._on_env_step, wire.STEP_QOS)
         node.create_subscription(wire.FLOATS, wire.CREDIT, self._on_credit, LATCHED_QOS)
+
+    def _apply(self, name: str, value) -> None:
+        """A live parameter changed: ``epsilon`` holds from the next decision on."""
+        if name == "epsilon":
+            self.net.set_fixed_epsilon(value)
 
     def expect(self, topic: str, publisher: str) -> None:
         """``topic`` is an input published by ``publisher``: report when none comes."""

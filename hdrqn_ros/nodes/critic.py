@@ -17,7 +17,9 @@ import numpy as np
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.middleware import Middleware
 from hdrqn_ros.protocol import wire
-from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, check_num_envs, env_kwargs, run_node
+from hdrqn_ros.middleware import ParameterRule
+from hdrqn_ros.nodes.common import (ENV_DEFAULTS, ENV_RULES, NodeConfigError, check_num_envs, env_kwargs,
+                                    live_parameters, run_node)
 from hdrqn_ros.protocol.follower import StepFollower, done
 
 PARAMETERS = {**ENV_DEFAULTS, "num_envs": 1, "option_timeout": 0.0}
@@ -25,15 +27,20 @@ PARAMETERS = {**ENV_DEFAULTS, "num_envs": 1, "option_timeout": 0.0}
 ``option_timeout``: an option not done this many seconds (of step keys, i.e. ROS time on a
 robot) after it started ends there (0: never; a robot whose navigator cannot reach a place)."""
 
+RULES = {**ENV_RULES, "option_timeout": ParameterRule(
+    "seconds (of step keys) after which an option not yet done ends without reward (0: never)", live=True, low=0.0,
+    high=1e9)}
+
 
 class CriticNode(StepFollower):
     def __init__(self, mw: Middleware):
         node = mw.create_node("critic")
-        params = node.declare_parameters(PARAMETERS)
+        params = node.declare_parameters(PARAMETERS, rules=RULES)
         n = check_num_envs(params["num_envs"])
         if not params["option_timeout"] >= 0:
             raise NodeConfigError(f"option_timeout must be >= 0 s (0: never), got {params['option_timeout']!r}")
         self.timeout_ns = int(round(params["option_timeout"] * 1e9))
+        live_parameters(node, params, RULES, lambda name, value: setattr(self, "timeout_ns", int(round(value * 1e9))))
         super().__init__(node, num_envs=n)
         probe = make_batch(params["env"], 1, **env_kwargs(params["env"], params["view"]))
         self.critic, self.num_subgoals = probe.critic(), probe.num_subgoals

@@ -19,7 +19,9 @@ from hdrqn_ros.envs.domain import NO_SUBGOAL
 from hdrqn_ros.envs.registration import MONTEZUMA_IDS, make_batch
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware
 from hdrqn_ros.protocol import wire
-from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, check_num_envs, env_kwargs, run_node
+from hdrqn_ros.middleware import ParameterRule
+from hdrqn_ros.nodes.common import (ENV_DEFAULTS, ENV_RULES, NodeConfigError, check_num_envs, env_kwargs,
+                                    live_parameters, run_node)
 from hdrqn_ros.protocol.follower import done
 from hdrqn_ros.throttle import Throttle
 
@@ -35,11 +37,25 @@ published, and ``action_time``, when the action that made the step arrived, for 
 measurements: ``benchmarks/bench_load.py``); ``publish_clock``: publish ``/clock`` (turn
 off for all but one group: there is one sim clock)."""
 
+RULES = {**ENV_RULES,
+         "step_period": ParameterRule("simulated seconds per step (the step key's increment)", positive=True),
+         "frame_id": ParameterRule("header.frame_id of observation, subgoal_images and pose"),
+         "action_timeout": ParameterRule("seconds without an action before a warning and a re-published step",
+                                         live=True, positive=True),
+         "wait_for_learner": ParameterRule("step only while the learner's credit allows (the training graph)"),
+         "max_episodes": ParameterRule("stop after this many episodes, all environments together (0: never)",
+                                       live=True, low=0, high=2**31),
+         "step_log": ParameterRule("append every step to this JSON-lines file ('': off)"),
+         "publish_clock": ParameterRule("publish /clock (one group only: there is one sim clock)")}
+"""Descriptions and rules of :data:`PARAMETERS` (``ros2 param describe``); live: the action
+timeout and ``max_episodes``."""
+
 
 class EnvironmentNode:
     def __init__(self, mw: Middleware):
         node = self.node = mw.create_node("environment")
-        params = self.params = node.declare_parameters(PARAMETERS)
+        params = self.params = node.declare_parameters(PARAMETERS, rules=RULES)
+        live_parameters(node, params, RULES)
         self.period_ns = int(round(params["step_period"] * 1e9))
         if self.period_ns <= 0 or params["action_timeout"] <= 0:
             raise NodeConfigError("step_period and action_timeout must be > 0")

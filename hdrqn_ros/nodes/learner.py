@@ -25,13 +25,13 @@ import numpy as np
 
 from hdrqn_ros.agents.weights import encode_weights
 from hdrqn_ros.config import ConfigError, build_config, parse_set
-from hdrqn_ros.middleware import LATCHED_QOS, Middleware
+from hdrqn_ros.middleware import LATCHED_QOS, Middleware, ParameterRule
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.group import GroupAssembler
 from hdrqn_ros.recording.bag import BagError
 from hdrqn_ros.recording.received import GraphRecorder, earlier_recordings
 from hdrqn_ros.recording.transitions import read_episodes
-from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, check_algo, env_kwargs, run_node
+from hdrqn_ros.nodes.common import ENV_DEFAULTS, ENV_RULES, NodeConfigError, check_algo, env_kwargs, run_node
 from hdrqn_ros.training.checkpoint import CheckpointError
 from hdrqn_ros.training.learner import Learner
 
@@ -55,6 +55,26 @@ loses no acknowledged transition.
 episodes), then run ``offline_updates`` updates on them before taking the graph's data.
 With no groups (``groups: [""]``) the learner trains offline only: ``offline_updates``
 (default 10 per ``update_every`` recorded steps), then evaluates and finishes."""
+RULES = {
+    **ENV_RULES,
+    "config": ParameterRule("training config YAML (hdrqn train --config)"),
+    "overrides": ParameterRule("key=value config items, like hdrqn train --set"),
+    "episodes": ParameterRule("training episodes, all groups together", low=1, high=10**9),
+    "run_dir": ParameterRule("run directory: checkpoints, metrics, logs"),
+    "groups": ParameterRule("the groups' namespaces ([''] : offline only)"),
+    "resume": ParameterRule("continue from run_dir's checkpoint when there is one"),
+    "weights_every": ParameterRule("updates between weight publications", low=1, high=10**9),
+    "credit_window": ParameterRule("env steps a group may run ahead of the updates owed", low=1, high=10**9),
+    "max_owed_updates": ParameterRule("updates owed before a group's credit stops", low=1, high=10**9),
+    "status_period": ParameterRule("seconds between status publications", positive=True),
+    "evaluate": ParameterRule("greedy evaluations during and after training"),
+    "transition_log": ParameterRule("append every assembled transition to this JSON-lines file ('': off)"),
+    "record": ParameterRule("record every message taken from the groups to this new rosbag2 MCAP bag ('': off)"),
+    "record_split_mb": ParameterRule("split the recording every this many MB", positive=True),
+    "bags": ParameterRule("fill the replay from these bags before training"),
+    "offline_updates": ParameterRule("updates on the bags before taking the graph's data", low=0, high=10**9),
+}
+"""Descriptions of :data:`PARAMETERS`: all read-only (a learner's settings are its run's)."""
 
 EPISODE_QUEUE = 256
 """Finished episodes waiting for the training thread (bounded; the credit keeps it short)."""
@@ -63,7 +83,7 @@ EPISODE_QUEUE = 256
 class LearnerNode:
     def __init__(self, mw: Middleware):
         node = self.node = mw.create_node("learner")
-        params = self.params = node.declare_parameters(PARAMETERS)
+        params = self.params = node.declare_parameters(PARAMETERS, rules=RULES)
         check_algo(params["algo"])
         overrides = parse_set([item for item in params["overrides"] if item])
         overrides.setdefault("env_kwargs", {}).update(env_kwargs(params["env"], params["view"]))

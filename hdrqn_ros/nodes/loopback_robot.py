@@ -28,9 +28,9 @@ import time
 import numpy as np
 
 from hdrqn_ros.envs.registration import GRID_IDS
-from hdrqn_ros.middleware import LATCHED_QOS, Middleware
+from hdrqn_ros.middleware import LATCHED_QOS, Middleware, ParameterRule
 from hdrqn_ros.nodes import nav
-from hdrqn_ros.nodes.common import NodeConfigError, run_node
+from hdrqn_ros.nodes.common import NodeConfigError, live_parameters, run_node
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.follower import done
 from hdrqn_ros.robot.loopback_world import LoopbackWorld
@@ -49,12 +49,38 @@ rolling local costmap (m); ``costmap_period``: simulated seconds between local c
 ``cmd_vel`` (until a velocity command after the step); ``step_period``: the robot-side
 environment's step period (the time at which lockstep waits for its next step)."""
 LOCKSTEP_MODES = ("off", "action", "cmd_vel")
+RULES = {
+    "env": ParameterRule("the map: a gridworld or four-rooms environment id"),
+    "seed": ParameterRule("the layouts: the simulator's for this seed, without fire"),
+    "frame_id": ParameterRule("the one frame of everything published"),
+    "tick": ParameterRule("simulated seconds per integration step", positive=True),
+    "real_time_factor": ParameterRule("simulated seconds per wall second (0: as fast as possible)", low=0.0, high=1e6),
+    "holonomic": ParameterRule("false: differential drive (linear.y ignored)"),
+    "cmd_vel_topic": ParameterRule("velocity commands in"),
+    "cmd_vel_stamped": ParameterRule("commands are TwistStamped (else Twist)"),
+    "cmd_vel_timeout": ParameterRule("simulated seconds a command is held, then the robot stops", live=True,
+                                     positive=True),
+    "goal_pose_topic": ParameterRule("goal poses the navigator stand-in drives to"),
+    "nav_speed": ParameterRule("m/s toward a goal pose", live=True, positive=True),
+    "odom_topic": ParameterRule("nav_msgs/Odometry out, every tick"),
+    "costmap_topic": ParameterRule("the rolling local costmap out"),
+    "costmap_size": ParameterRule("side of the local costmap (m)", live=True, positive=True),
+    "costmap_period": ParameterRule("simulated seconds between local costmaps", live=True, positive=True),
+    "global_costmap_topic": ParameterRule("the whole map out, once per layout"),
+    "subgoal_poses_topic": ParameterRule("each episode's places out (latched PoseArray)"),
+    "lockstep": ParameterRule("stop the clock at each agent step until it is answered", choices=LOCKSTEP_MODES),
+    "step_period": ParameterRule("the robot environment's step period (when lockstep waits for its next step)",
+                                 live=True, positive=True),
+    "lockstep_timeout": ParameterRule("wall seconds a lockstep hold may last before it is released", live=True,
+                                      positive=True),
+}
+"""Descriptions and rules of :data:`PARAMETERS`."""
 
 
 class LoopbackRobotNode:
     def __init__(self, mw: Middleware):
         node = self.node = mw.create_node("loopback_robot")
-        params = self.params = node.declare_parameters(PARAMETERS)
+        params = self.params = node.declare_parameters(PARAMETERS, rules=RULES)
         if params["env"] not in GRID_IDS:
             raise NodeConfigError(f"the loopback robot drives the gridworld maps: env must be one of "
                                   f"{sorted(GRID_IDS)}, got {params['env']!r}")
@@ -71,6 +97,7 @@ class LoopbackRobotNode:
         self.world = LoopbackWorld(grid["layout"], grid["n_goals"], params["seed"], nav_speed_m_s=params["nav_speed"],
                                    holonomic=params["holonomic"])
         self.tick_ns = int(round(params["tick"] * 1e9))
+        live_parameters(node, params, RULES, self._apply)
         self.now_ns = 0
         self.next_costmap_ns = 0
         twist = nav.TWIST_STAMPED if params["cmd_vel_stamped"] else nav.TWIST
@@ -92,6 +119,11 @@ class LoopbackRobotNode:
         self._new_layout()
         period = params["tick"] / params["real_time_factor"] if params["real_time_factor"] > 0 else 0.001
         node.create_timer(period, self._tick)
+
+    def _apply(self, name: str, value) -> None:
+        """A live parameter changed (the others are read at their next use)."""
+        if name == "nav_speed":
+            self.world.nav_speed = float(value)
 
     # -- inputs ------------------------------------------------------------------------------------
     def _on_cmd_vel(self, msg) -> None:

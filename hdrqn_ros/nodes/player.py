@@ -22,7 +22,7 @@ import threading
 import time
 from typing import Any, Callable, Iterator
 
-from hdrqn_ros.middleware import DEFAULT_QOS, Middleware, QoS
+from hdrqn_ros.middleware import DEFAULT_QOS, Middleware, ParameterRule, QoS
 from hdrqn_ros.nodes.common import NodeConfigError, run_node
 from hdrqn_ros.recording.bag import BagError, TopicInfo, bag_summary, bag_topics, read_messages
 
@@ -36,6 +36,19 @@ wall-clock second; ``delay``: seconds to wait after creating the publishers, so 
 discovery matches the subscribers before the first message; ``wait_for_subscribers``: first
 wait (without limit, until stopped) until every topic's publisher has at least this many
 matched subscriptions (0: do not wait), for a consumer that must get every message."""
+
+RULES = {
+    "bag": ParameterRule("bag directories, played together in timestamp order"),
+    "rate": ParameterRule("bag seconds per wall-clock second", positive=True),
+    "loop": ParameterRule("start over at the end, until stopped"),
+    "topics": ParameterRule("recorded topic names to play ([''] : all)"),
+    "clock": ParameterRule("publish /clock in bag time"),
+    "clock_hz": ParameterRule("at most this many generated /clock messages per wall-clock second", positive=True),
+    "delay": ParameterRule("seconds to wait for discovery before the first message", low=0.0, high=3600.0),
+    "wait_for_subscribers": ParameterRule("first wait until every topic has this many subscribers (0: do not wait)",
+                                          low=0, high=1000),
+}
+"""Descriptions of :data:`PARAMETERS`: all read-only (set when the playback starts)."""
 
 CLOCK_TOPIC = "/clock"
 CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
@@ -77,7 +90,7 @@ class PlayerNode:
     def __init__(self, mw: Middleware, progress: Callable[["PlayerNode"], None] | None = None,
                  progress_period: float = 2.0, parameters: dict[str, Any] | None = None):
         node = self.node = mw.create_node("player")
-        params = self.params = node.declare_parameters(PARAMETERS, parameters)
+        params = self.params = node.declare_parameters(PARAMETERS, parameters, rules=RULES)
         self.bags = [b for b in params["bag"] if b]
         if not self.bags:
             raise NodeConfigError("no bag to play: set the parameter bag to a list of bag directories")

@@ -31,9 +31,10 @@ import time
 
 import numpy as np
 
-from hdrqn_ros.middleware import LATCHED_QOS, BackendError, Middleware
+from hdrqn_ros.middleware import LATCHED_QOS, BackendError, Middleware, ParameterRule
 from hdrqn_ros.nodes import nav
-from hdrqn_ros.nodes.common import ENV_DEFAULTS, NodeConfigError, check_algo, domain_sizes, run_node
+from hdrqn_ros.nodes.common import (ENV_DEFAULTS, ENV_RULES, NodeConfigError, check_algo, domain_sizes,
+                                    live_parameters, run_node)
 from hdrqn_ros.nodes.ros_time import RosTime
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.robot.ordered_visits import OrderedVisits
@@ -55,11 +56,39 @@ next step; ``action_timeout``: wall seconds before a missing action is reported 
 step re-published; ``new_layout_each_episode``: start an episode only on places published
 after the last one ended; ``max_episodes``: stop after this many (0: never)."""
 
+RULES = {
+    **ENV_RULES,
+    "step_period": ParameterRule("seconds (ROS time) per agent step", live=True, positive=True),
+    "pose_topic": ParameterRule("the robot's pose (e.g. /odom, /amcl_pose)"),
+    "pose_type": ParameterRule("the pose topic's type", choices=tuple(nav.POSE_TYPES)),
+    "costmap_topic": ParameterRule("the observation's costmap (nav_msgs/OccupancyGrid)"),
+    "global_costmap_topic": ParameterRule("the places' images' costmap ('': the local one)"),
+    "subgoal_table": ParameterRule("the places as a YAML table (this or subgoal_poses_topic)"),
+    "subgoal_poses_topic": ParameterRule("the places as a latched geometry_msgs/PoseArray"),
+    "new_layout_each_episode": ParameterRule("start an episode only on places published since the last one ended"),
+    "goal_tolerance": ParameterRule("metres within which the robot is at a place", live=True, positive=True),
+    "max_steps": ParameterRule("an episode's step limit (0: the domain's, 50)", live=True, low=0, high=100000),
+    "cell_size_m": ParameterRule("metres per simulator cell in the observation", positive=True),
+    "heading_up": ParameterRule("observation turned with the robot's yaw instead of north-up"),
+    "lethal": ParameterRule("costmap cost drawn as wall (and reported as hit_obstacle under the robot)", live=True,
+                            low=1, high=100),
+    "unknown_cells": ParameterRule("unknown costmap cells drawn black (outside) or as wall",
+                                   choices=("outside", "wall")),
+    "stale_after_s": ParameterRule("a pose or costmap older than this (ROS time) holds the next step", live=True,
+                                   positive=True),
+    "action_timeout": ParameterRule("wall seconds without an action before a warning and a re-published step",
+                                    live=True, positive=True),
+    "autostart": ParameterRule("start the next episode as soon as one ends (false: on ~/start_episode)", live=True),
+    "max_episodes": ParameterRule("exit after this many episodes (0: never)", live=True, low=0, high=2**31),
+    "episode_log": ParameterRule("append each finished episode to this JSON-lines file ('': off)"),
+}
+"""Descriptions and rules of :data:`PARAMETERS`; the live ones take effect at the next step."""
+
 
 class RobotEnvironmentNode:
     def __init__(self, mw: Middleware):
         node = self.node = mw.create_node("robot_environment")
-        params = self.params = node.declare_parameters(PARAMETERS)
+        params = self.params = node.declare_parameters(PARAMETERS, rules=RULES)
         check_algo(params["algo"])
         self.num_actions, self.num_subgoals = domain_sizes(params["env"], params["view"])
         if not params["view"].isdigit():
@@ -75,10 +104,10 @@ class RobotEnvironmentNode:
         if bool(params["subgoal_table"]) == bool(params["subgoal_poses_topic"]):
             raise NodeConfigError("give the places either as subgoal_table (a YAML file) or as subgoal_poses_topic "
                                   "(a latched geometry_msgs/PoseArray), exactly one")
-        self.period_ns = int(round(params["step_period"] * 1e9))
-        self.stale_ns = int(round(params["stale_after_s"] * 1e9))
-        max_steps = params["max_steps"] or 50
-        self.task = OrderedVisits(self.num_subgoals, params["goal_tolerance"], max_steps)
+        self.task = OrderedVisits(self.num_subgoals, params["goal_tolerance"], params["max_steps"] or 50)
+        for name in ("step_period", "stale_after_s"):
+            self._apply(name, params[name])
+        live_parameters(node, params, RULES, self._apply)
         self.places: nav.SubgoalTable | None = None
         self.places_stamp = 0  # header stamp (ns) of the places (a table: 0)
         if params["subgoal_table"]:
@@ -129,6 +158,19 @@ class RobotEnvironmentNode:
         self.episode_log = open(params["episode_log"], "a", buffering=1) if params["episode_log"] else None
         node.create_timer(0.02, self._tick)
         node.create_timer(0.5, self._watchdog)
+
+    def _apply(self, name: str, value) -> None:
+        """A live parameter's derived value (at start, and on ``ros2 param set``)."""
+        if name == "step_period":
+            self.period_ns = int(round(value * 1e9))
+        elif name == "stale_after_s":
+            self.stale_ns = int(round(value * 1e9))
+        elif name == "goal_tolerance":
+            self.task.tolerance_m = float(value)
+        elif name == "max_steps":
+            self.task.max_steps = int(value) or 50
+        elif name == "autostart" and value:
+            self.start_requested = True
 
     # -- inputs ------------------------------------------------------------------------------
     def _check_frame(self, frame_id: str, what: str) -> None:

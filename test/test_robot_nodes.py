@@ -332,3 +332,29 @@ def test_param_set_on_the_robot_nodes(tmp_path, checkpoint, domain, monkeypatch)
     gaps = {int(b["key"] - a["key"]) for a, b in zip(probe.steps[seen + 1:], probe.steps[seen + 2:])
             if b["prev_key"] == a["key"]}
     assert gaps == {5 * 10**9}, gaps
+
+
+SHIPPED = Path(__file__).resolve().parents[1] / "policies" / "hdrqn-v2_gridworld-2goals"
+
+
+@NO_RCLPY
+def test_the_shipped_trained_policy_visits_the_goals_in_order(tmp_path, domain, monkeypatch):
+    """The trained hDRQNv2 the package ships (ONNX, no torch in the controllers) drives the
+    loopback robot through cmd_vel: on the seed-0 layouts it visits blue then green in each
+    episode, in the steps the simulator takes with the checkpoint it was exported from
+    (4, 8, 9: the lockstep robot is deterministic)."""
+    monkeypatch.setenv("HDRQN_MIDDLEWARE", "rclpy")
+    log = tmp_path / "episodes.jsonl"
+    run = RobotRun(algo="hdrqn-v2", env=ENV, view="5", policy=str(SHIPPED), episodes=3, seed=0,
+                   real_time_factor=40.0, episode_log=str(log))
+    sup = Supervisor(robot_processes(run, write_params(run, tmp_path / "params.yaml"), hierarchical=True),
+                     log_dir=tmp_path / "logs", stop_timeout_s=10)
+    sup.start()
+    try:
+        wait_for(lambda: sup.returncodes["robot_environment"] is not None, 240, "3 robot episodes", sup)
+    finally:
+        codes = sup.stop()
+    assert codes["robot_environment"] == 0, codes
+    assert [(r["visits"], r["success"], r["steps"]) for r in read_jsonl(log)] == [([0, 1], True, 4),
+                                                                                   ([0, 1], True, 8),
+                                                                                   ([0, 1], True, 9)]

@@ -5,7 +5,8 @@ from setuptools import find_packages, setup
 
 PACKAGE = "hdrqn_ros"
 ROS_WHEELS = ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-std-msgs", "ros-jazzy-sensor-msgs", "ros-jazzy-geometry-msgs",
-              "ros-jazzy-nav-msgs", "ros-jazzy-rosgraph-msgs", "ros-jazzy-std-srvs"]
+              "ros-jazzy-nav-msgs", "ros-jazzy-rosgraph-msgs", "ros-jazzy-std-srvs", "ros-jazzy-diagnostic-msgs",
+              "ros-jazzy-visualization-msgs"]
 
 setup(
     name=PACKAGE,

@@ -56,6 +56,12 @@ class Probe:
         self.odom_twist: list[tuple[float, float, float]] = []
         self.new_options = 0
         self.steps: list[dict] = []
+        self.diagnostics: dict[str, object] = {}  # status name -> the latest DiagnosticStatus
+        self.markers = None  # the latest MarkerArray
+        node.create_subscription("diagnostic_msgs/msg/DiagnosticArray", "/diagnostics", lambda m: self.diagnostics.update(
+            {s.name: s for s in m.status}))
+        node.create_subscription("visualization_msgs/msg/MarkerArray", "/subgoal_markers",
+                                 lambda m: setattr(self, "markers", m))
         node.create_subscription(nav.TWIST, "/cmd_vel", lambda m: self.cmd_vel.append(
             (m.linear.x, m.linear.y, m.angular.z)))
         node.create_subscription(nav.POSE_STAMPED, "/goal_pose", lambda m: self.goal_poses.append(
@@ -108,6 +114,14 @@ def test_sub_drives_the_simulators_episodes_with_one_cmd_vel_per_step(tmp_path, 
     probe = Probe(backend)
     sup, log = start(tmp_path, checkpoint, "sub-drives")
     try:
+        def acting() -> bool:
+            sub = probe.diagnostics.get("hdrqn_ros: /sub_controller")
+            return sub is not None and any(kv.key == "decisions_per_s" and float(kv.value) > 0 for kv in sub.values)
+
+        probe.until(lambda: len(probe.diagnostics) >= 3 and probe.markers is not None and acting(), 120,
+                    f"the diagnostics of every deployed node and the markers ({sorted(probe.diagnostics)})", sup)
+        running = dict(probe.diagnostics)
+        markers = probe.markers
         probe.until(finished(sup), 240, f"{EPISODES} robot episodes", sup)
         probe.until(lambda: probe.cmd_vel and probe.cmd_vel[-1] == (0.0, 0.0, 0.0), 30, "the last zero command", sup)
         probe.until(lambda: probe.odom_twist and probe.odom_twist[-1] == (0.0, 0.0, 0.0), 30, "the robot at rest", sup)
@@ -124,6 +138,14 @@ def test_sub_drives_the_simulators_episodes_with_one_cmd_vel_per_step(tmp_path, 
     assert len(moves) == sum(r["steps"] for r in robot), "one command per agent step"
     assert len(probe.cmd_vel) - len(moves) >= EPISODES, "a zero command at each episode's end"
     assert probe.goal_poses == []
+    values = {name: {kv.key: kv.value for kv in status.values} for name, status in running.items()}
+    sub = values["hdrqn_ros: /sub_controller"]
+    assert sub["policy"].startswith(f"checkpoint {checkpoint} sha256:") and float(sub["decisions_per_s"]) > 0
+    assert float(sub["decision_ms_median"]) > 0 and "episodes" in values["hdrqn_ros: /robot_environment"]
+    assert "hdrqn_ros: /meta_controller" in values
+    places = [m for m in markers.markers if m.ns == "hdrqn_places"]
+    assert len(places) == 2 and {m.header.frame_id for m in markers.markers} == {"map"}
+    assert any(m.ns == "hdrqn_subgoal" and m.text.startswith("subgoal: ") for m in markers.markers)
 
 
 @NO_RCLPY

@@ -17,6 +17,8 @@ import time
 
 import numpy as np
 
+from hdrqn_ros.nodes.diagnostics import OK, WARN, Diagnostics, policy_source
+
 from hdrqn_ros.agents.policy import HierarchicalPolicy
 from hdrqn_ros.deploy.specs import ALGO_SPECS, STATE_SIZE, stack_subgoal
 from hdrqn_ros.envs.domain import OBS_SIZE
@@ -88,6 +90,9 @@ class _Controller(StepFollower):
         node.create_timer(1.0, self._report_quiet_inputs)
         self.net = make_acting_network(node, self.role, params, default_epsilon=1.0)
         live_parameters(node, params, CONTROLLER_RULES, self._apply)
+        self.source = policy_source(params)
+        self.rejected_before = 0  # messages rejected up to the last diagnostics
+        self.diagnostics = Diagnostics(node, self._health)
         self.spec = ALGO_SPECS[params["algo"]]
         # this node's level of the policy, for the environments of the batch
         sub, meta = (self.net, None) if self.role == "sub" else (None, self.net)
@@ -97,6 +102,22 @@ class _Controller(StepFollower):
             self.expect(wire.ENV_STEP, "the environment node (environment, or robot_environment on a robot)")
             node.create_subscription(wire.FLOATS, wire.ENV_STEP, self._on_env_step, wire.STEP_QOS)
         node.create_subscription(wire.FLOATS, wire.CREDIT, self._on_credit, LATCHED_QOS)
+
+    def problems(self) -> list[str]:
+        """What is wrong now, in words (the diagnostics' WARN message; none: OK)."""
+        now = time.monotonic()
+        found = [f"nothing on {self.node.resolve_topic(topic)} for {now - last:.0f} s: waiting for {publisher}"
+                 for topic, (last, publisher) in self.heard.items() if topic in self.quiet_reported]
+        if (rejected := self.rejected - self.rejected_before) > 0:
+            found.append(f"{rejected} message(s) rejected in the last second (see the log)")
+        self.rejected_before = self.rejected
+        return found
+
+    def _health(self) -> tuple[int, str, dict[str, str]]:
+        found = self.problems()
+        values = {"algo": self.params["algo"], "policy": self.source, "epsilon": f"{self.net.epsilon:g}",
+                  "messages_rejected": str(self.rejected)}
+        return (WARN, "; ".join(found), values) if found else (OK, "acting", values)
 
     def _apply(self, name: str, value) -> None:
         """A live parameter changed: ``epsilon`` holds from the next decision on."""
@@ -230,10 +251,23 @@ class SubControllerNode(_Controller):
             self.pub_cmd.publish(self._command(None))
             self.node.logger.info("zero command on %s: %s", self.node.resolve_topic(self.params["cmd_vel_topic"]), why)
 
+    def problems(self) -> list[str]:
+        found = super().problems()
+        if self.params["observation_source"] == "costmap" and self.spec.hierarchical and self.free_subgoal < 0:
+            found.append(f"no subgoal yet on {self.node.resolve_topic(wire.SUBGOAL)} (is the meta_controller running?)")
+        if self._stale():
+            found.append(f"the observation is older than stale_after_s ({self.params['stale_after_s']} s): "
+                         f"the robot is stopped")
+        return found
+
+    def _stale(self) -> bool:
+        now = self.clock.now_ns()
+        return self.pub_cmd is not None and now is not None and self.observed_ns is not None and \
+            now - self.observed_ns > self.params["stale_after_s"] * 1e9
+
     def _stop_if_stale(self) -> None:
         now = self.clock.now_ns()
-        if self.moving and now is not None and self.observed_ns is not None and \
-                now - self.observed_ns > self.params["stale_after_s"] * 1e9:
+        if self.moving and self._stale():
             self.stop(f"the observation is {(now - self.observed_ns) / 1e9:.1f} s old "
                       f"(stale_after_s {self.params['stale_after_s']})")
 
@@ -268,7 +302,9 @@ class SubControllerNode(_Controller):
                 self.subgoal_image[0] = nav.costmap_to_observation(
                     msg, robot_xy=self.goals.poses[self.free_subgoal][:2], view_cells=view)
             x = stack_subgoal(obs, self.subgoal_image[0])
+        started = time.perf_counter()
         action = int(self.policy.act(x[None], self.net.epsilon, self.net.rng)[0])
+        self.diagnostics.decision(time.perf_counter() - started)
         self.pub_action.publish(wire.make_record(self.node, wire.INTS, wire.ACTION_FIELDS, [key, action]))
         if self.pub_cmd is not None:
             self.pub_cmd.publish(self._command(action, key))
@@ -314,7 +350,9 @@ class SubControllerNode(_Controller):
                     g = int(chosen[i])
                     self.subgoal_image[i] = images[i, g * OBS_SIZE:(g + 1) * OBS_SIZE]
             x = stack_subgoal(obs, self.subgoal_image)
+        started = time.perf_counter()
         actions = self.policy.act(x, self.net.epsilon, self.net.rng)
+        self.diagnostics.decision(time.perf_counter() - started)
         actions[[done(row) for row in rows]] = -1
         self.acted_key = key
         replies = [(self.pub_cmd, self._command(int(actions[0]), key))] if self.pub_cmd is not None else []
@@ -406,7 +444,9 @@ class MetaControllerNode(_Controller):
             sub_end = self.inbox.get(wire.SUB_STATE, prev)[ended] if state_input else None
             self.policy.end_options(ended, np.array([int(row["at_subgoal"]) for row in rows]), sub_end)
         obs = None if state_input else self.inbox.get(wire.OBSERVATION, key)
+        started = time.perf_counter()
         chosen, _ = self.policy.choose_subgoals(starts, obs, self.net.epsilon, self.net.rng)
+        self.diagnostics.decision(time.perf_counter() - started)
         subgoals = np.full(self.num_envs, -1, np.int64)
         subgoals[starts] = chosen
         replies = [(self.pub_subgoal, wire.make_records(self.node, wire.INTS, wire.SUBGOAL_FIELDS,

@@ -111,9 +111,11 @@ class LoopbackRobotNode:
         self.pub_global = node.create_publisher(nav.OCCUPANCY_GRID, params["global_costmap_topic"], LATCHED_QOS)
         self.pub_places = node.create_publisher(nav.POSE_ARRAY, params["subgoal_poses_topic"], LATCHED_QOS)
         self.rejected = Throttle(node.logger, "rejected a message")
-        # lockstep: the latest agent step (its key, whether it ended the episode, whether it was answered)
+        # lockstep: the latest agent step (its key, whether it ended the episode)
         self.step_key: int | None = None
-        self.step_done = self.answered = False
+        self.step_done = False
+        self.action_key = self.answered_key = -1  # the latest action's key; the latest step answered
+        self.moves = self.moves_used = 0  # non-zero commands received; those that answered steps
         self.held_since: float | None = None
         self.released_key: int | None = None  # the step whose hold timed out (runs free until the next step)
         self._new_layout()
@@ -133,10 +135,9 @@ class LoopbackRobotNode:
             return self.rejected.warn(f"cmd_vel is not finite: {values}")
         if any(values):
             self.world.command(*values, self.params["cmd_vel_timeout"])
+            self.moves += 1
         else:
             self.world.stop()
-        if self.params["lockstep"] == "cmd_vel":
-            self.answered = True
 
     def _on_goal_pose(self, msg) -> None:
         if msg.header.frame_id != self.params["frame_id"]:
@@ -155,7 +156,7 @@ class LoopbackRobotNode:
         key = int(row["key"])
         if self.step_key is not None and key <= self.step_key:
             return  # a re-published step
-        self.step_key, self.step_done, self.answered, self.held_since = key, done(row), False, None
+        self.step_key, self.step_done, self.held_since = key, done(row), None
         if self.step_done:
             self._new_layout()
 
@@ -164,19 +165,29 @@ class LoopbackRobotNode:
             key, _ = wire.read_actions(msg, 1 << 30, 1)
         except wire.ProtocolError:
             return
-        if self.params["lockstep"] == "action" and key == self.step_key:
-            self.answered = True
+        self.action_key = max(self.action_key, key)
 
     # -- simulation ----------------------------------------------------------------------------------
     def _holding(self) -> str:
         """What the lockstep clock waits for ('' when it may run)."""
         if self.params["lockstep"] == "off" or self.step_key is None or self.released_key == self.step_key:
             return ""
-        if not self.step_done and not self.answered:
+        if not self.step_done and not self._answered():
             return f"the agent's {self.params['lockstep']} for step key {self.step_key}"
         if self.step_done or self.now_ns >= self.step_key + self.params["step_period"] * 1e9:
             return f"the robot environment's step after key {self.step_key}"
         return ""
+
+    def _answered(self) -> bool:
+        """The agent answered the latest step: its action came (the key says which step), and
+        with lockstep ``cmd_vel`` a new velocity command too (which carries no key, and may
+        arrive before the step itself: counted). Once true for a step, it stays true."""
+        if self.answered_key == self.step_key:
+            return True
+        if self.action_key < self.step_key or (self.params["lockstep"] == "cmd_vel" and self.moves <= self.moves_used):
+            return False
+        self.answered_key, self.moves_used = self.step_key, self.moves
+        return True
 
     def _tick(self) -> None:
         if waiting := self._holding():

@@ -35,6 +35,7 @@ from hdrqn_ros.middleware import LATCHED_QOS, BackendError, Middleware, Paramete
 from hdrqn_ros.nodes import nav
 from hdrqn_ros.nodes.common import (ENV_DEFAULTS, ENV_RULES, NodeConfigError, check_algo, domain_sizes,
                                     live_parameters, run_node)
+from hdrqn_ros.nodes.diagnostics import OK, WARN, Diagnostics
 from hdrqn_ros.nodes.ros_time import RosTime
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.robot.ordered_visits import OrderedVisits
@@ -83,6 +84,17 @@ RULES = {
     "episode_log": ParameterRule("append each finished episode to this JSON-lines file ('': off)"),
 }
 """Descriptions and rules of :data:`PARAMETERS`; the live ones take effect at the next step."""
+
+MARKERS = "subgoal_markers"
+"""``visualization_msgs/MarkerArray`` of the places, the current option's highlighted."""
+MARKER_ARRAY, MARKER = "visualization_msgs/msg/MarkerArray", "visualization_msgs/msg/Marker"
+CYLINDER, TEXT, ADD = 3, 9, 0
+"""``visualization_msgs/Marker`` type and action constants."""
+
+
+def _pose_msg(msg, x: float, y: float, z: float):
+    return msg("geometry_msgs/msg/Pose")(position=msg("geometry_msgs/msg/Point")(x=float(x), y=float(y), z=float(z)),
+                                         orientation=msg("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=0.0, w=1.0))
 
 
 class RobotEnvironmentNode:
@@ -141,7 +153,8 @@ class RobotEnvironmentNode:
         self.rejected = {name: Throttle(node.logger, f"rejected a message on {node.resolve_topic(topic)}")
                          for name, topic in (("pose", params["pose_topic"]), ("costmap", params["costmap_topic"]),
                                              ("global", params["global_costmap_topic"]),
-                                             ("places", params["subgoal_poses_topic"]), (wire.ACTION, wire.ACTION))
+                                             ("places", params["subgoal_poses_topic"]), (wire.ACTION, wire.ACTION),
+                                             (wire.SUBGOAL, wire.SUBGOAL))
                          if topic}
         self.wait_since: float | None = None  # wall time the current wait began
         self.wait_logged = 0.0
@@ -156,6 +169,11 @@ class RobotEnvironmentNode:
         self.published_at = self.stepped_at = time.monotonic()
         self.decision_s: list[float] = []  # this episode's wall seconds from a step to its action
         self.episode_log = open(params["episode_log"], "a", buffering=1) if params["episode_log"] else None
+        self.option_subgoal = -1  # the current option's place (the meta-controller's subgoal), for the markers
+        node.create_subscription(wire.INTS, wire.SUBGOAL, self._on_subgoal, wire.STEP_QOS)
+        self.pub_markers = node.create_publisher(MARKER_ARRAY, MARKERS)
+        self.wait_reason = ""
+        self.diagnostics = Diagnostics(node, self._health)
         node.create_timer(0.02, self._tick)
         node.create_timer(0.5, self._watchdog)
 
@@ -232,7 +250,60 @@ class RobotEnvironmentNode:
         if self.running and key == self.key and self.pending_action is None and actions[0] >= 0:
             self.pending_action = int(actions[0])
             self.decision_s.append(time.monotonic() - self.stepped_at)
+            self.diagnostics.decision(self.decision_s[-1])
             self._tick()
+
+    def _on_subgoal(self, msg) -> None:
+        try:
+            _, chosen = wire.read_subgoals(msg, self.num_subgoals, 1)
+        except wire.ProtocolError as exc:
+            self.rejected[wire.SUBGOAL].warn(exc)
+            return
+        if chosen[0] >= 0:
+            self.option_subgoal = int(chosen[0])
+            if self.running:
+                self._publish_markers()
+
+    def _health(self) -> tuple[int, str, dict[str, str]]:
+        """The diagnostics: WARN while a step has waited over 2 s (saying for what), or messages were rejected."""
+        rejected = sum(throttle.count for throttle in self.rejected.values())
+        values = {"episodes": str(self.episodes_done), "successes": str(self.successes),
+                  "step_period_s": f"{self.params['step_period']:g}", "messages_rejected": str(rejected),
+                  "places": self.places.source if self.places is not None else "none yet"}
+        if self.finished:
+            return OK, f"finished {self.episodes_done} episodes", values
+        waited = 0.0 if self.wait_since is None else time.monotonic() - self.wait_since
+        if waited > 2.0:
+            return WARN, f"waiting {waited:.0f} s {self.wait_reason}", values
+        if self.running and self.pending_action is None and time.monotonic() - self.stepped_at > 2.0:
+            return WARN, f"waiting for the action of step t={int(self.record['t'])} on " \
+                         f"{self.node.resolve_topic(wire.ACTION)} (is the sub_controller running?)", values
+        state = f"episode {self.episode} step t={int(self.record['t'])}" if self.running else "between episodes"
+        return OK, state, values
+
+    def _publish_markers(self) -> None:
+        """The places as RViz / Foxglove markers: a disc per place in its goal colour (faint once
+        visited), the current option's place tall, with its name above it."""
+        msg, key, frame = self.node.msg, self.key, self.places.frame_id
+        header = wire.make_header(self.node, key, frame)
+        markers = []
+        for g, (x, y) in enumerate(self.task.goal_xy):
+            current = g == self.option_subgoal
+            red, green, blue = (int(c) / 255 for c in nav.PALETTE[nav.GOAL0 + g])
+            alpha = 0.25 if self.task.collected[g] else 0.9
+            height = 0.4 if current else 0.05
+            markers.append(msg(MARKER)(
+                header=header, ns="hdrqn_places", id=g, type=CYLINDER, action=ADD,
+                pose=_pose_msg(msg, x, y, height / 2),
+                scale=msg("geometry_msgs/msg/Vector3")(x=0.2, y=0.2, z=height),
+                color=msg("std_msgs/msg/ColorRGBA")(r=red, g=green, b=blue, a=alpha)))
+        label = nav.GOAL_NAMES[self.option_subgoal] if 0 <= self.option_subgoal < len(nav.GOAL_NAMES) else "none"
+        x, y = self.task.goal_xy[self.option_subgoal] if self.option_subgoal >= 0 else self.pose[:2]
+        markers.append(msg(MARKER)(
+            header=header, ns="hdrqn_subgoal", id=0, type=TEXT, action=ADD, pose=_pose_msg(msg, x, y, 0.6),
+            scale=msg("geometry_msgs/msg/Vector3")(x=0.0, y=0.0, z=0.15),
+            color=msg("std_msgs/msg/ColorRGBA")(r=0.0, g=0.0, b=0.0, a=1.0), text=f"subgoal: {label}"))
+        self.pub_markers.publish(msg(MARKER_ARRAY)(markers=markers))
 
     def _on_start(self, _request, response):
         response.success = not self.finished
@@ -265,6 +336,7 @@ class RobotEnvironmentNode:
     def _wait(self, why: str) -> None:
         """Report a wait that lasts (after 2 s, then every 10 s), not a momentary one."""
         now = time.monotonic()
+        self.wait_reason = why
         if self.wait_since is None:
             self.wait_since = now
         elif now - self.wait_since >= 2.0 and now - self.wait_logged >= 10.0:
@@ -303,7 +375,7 @@ class RobotEnvironmentNode:
     def _start_episode(self, now: int) -> None:
         self.episode += 1
         self.task.start(np.array([pose[:2] for pose in self.places.poses]))
-        self.running, self.episode_return, self.decision_s = True, 0.0, []
+        self.running, self.episode_return, self.decision_s, self.option_subgoal = True, 0.0, [], -1
         self._new_key(now)
         self.record = dict.fromkeys(wire.STEP_FIELDS, 0.0)
         self.record.update(key=self.key, prev_key=0, env_steps=self.env_steps, episode=self.episode,
@@ -367,6 +439,7 @@ class RobotEnvironmentNode:
         self.pub_obs.publish(wire.make_image(node, key, obs, frame))
         self.pub_images.publish(wire.make_image(node, key, images, frame))
         self.pub_pose.publish(wire.make_pose(node, key, frame, x, y))
+        self._publish_markers()
 
     def _watchdog(self) -> None:
         if not self.running or self.pending_action is not None:

@@ -71,7 +71,8 @@ def robot_parameters(run: RobotRun) -> dict[str, dict]:
         "robot_environment": {"subgoal_poses_topic": "subgoal_poses", "new_layout_each_episode": True,
                               "pose_topic": "odom", "costmap_topic": "local_costmap/costmap",
                               "global_costmap_topic": "global_costmap/costmap", "step_period": run.step_period,
-                              "max_episodes": run.episodes, "episode_log": run.episode_log},
+                              "max_episodes": run.episodes, "episode_log": run.episode_log,
+                              "wait_for_learner": bool(run.record)},
         "critic": {"option_timeout": 0.0 if drives else run.option_timeout},
         "meta_controller": {**acting, **({} if drives else {"subgoal_poses_topic": "subgoal_poses"})},
         "sub_controller": {**acting, **({"action_table": run.action_table, "cmd_vel_topic": "cmd_vel"}
@@ -92,7 +93,8 @@ def write_params(run: RobotRun, path: Path) -> Path:
 
 
 def robot_processes(run: RobotRun, params: Path, hierarchical: bool) -> list[ProcessSpec]:
-    """The node processes (the robot environment is required: it finishes the session)."""
+    """The node processes (the robot environment is required, its exit ends the session;
+    when recording, the learner's exit does: it records every episode first)."""
     nodes = ["loopback_robot", "robot_environment", "critic", "meta_controller", "sub_controller"] if hierarchical \
         else ["loopback_robot", "robot_environment", "sub_controller"]
     if run.record:
@@ -103,5 +105,5 @@ def robot_processes(run: RobotRun, params: Path, hierarchical: bool) -> list[Pro
         command = [sys.executable, "-m", module] if not func else \
             [sys.executable, "-c", f"import sys; from {module} import {func} as m; sys.exit(m())"]
         specs.append(ProcessSpec(name=node, argv=command + ["--ros-args", "--params-file", str(params)],
-                                 required=node == "robot_environment"))
+                                 required=node == "robot_environment" and not run.record))
     return specs

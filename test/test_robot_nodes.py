@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import signal
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -380,3 +381,25 @@ def test_the_shipped_trained_policy_visits_the_goals_in_order(tmp_path, domain, 
     assert [(r["visits"], r["success"], r["steps"]) for r in read_jsonl(log)] == [([0, 1], True, 4),
                                                                                    ([0, 1], True, 8),
                                                                                    ([0, 1], True, 9)]
+
+
+@NO_RCLPY
+def test_robot_episodes_recorded_then_trained_on_offline(tmp_path, domain, monkeypatch):
+    """``hdrqn robot --record``: a learner node records every robot episode to a bag, which
+    ``hdrqn train --from-bag`` trains on."""
+    monkeypatch.setenv("HDRQN_MIDDLEWARE", "rclpy")
+    bag, out = tmp_path / "bag", tmp_path / "robot"
+
+    def hdrqn(*argv: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "hdrqn_ros.cli", *argv], capture_output=True, text=True,
+                              timeout=600)
+
+    ran = hdrqn("robot", "--policy", str(SHIPPED), "--episodes", "5", "--record", str(bag), "--out", str(out),
+                "--real-time-factor", "40")
+    assert ran.returncode == 0, ran.stderr[-3000:]
+    info = json.loads(hdrqn("bag", "info", str(bag), "--json").stdout)
+    assert (info["episodes"]["/"]["episodes"], info["episodes"]["/"]["incomplete"]) == (5, 0), info["episodes"]
+    trained = hdrqn("train", "--from-bag", str(bag), "--out", str(tmp_path / "offline"), "--updates", "20",
+                    "--no-progress")
+    assert trained.returncode == 0 and "done: 20 updates on 5 episodes" in trained.stdout + trained.stderr, \
+        trained.stderr[-3000:]

@@ -110,7 +110,17 @@ def cmd_robot(args) -> int:
     start = time.monotonic()
     supervisor = Supervisor(specs, env={BACKEND_ENV: backend}, log_dir=out / "logs",
                             status=lambda: f"{len(rows)}/{args.episodes} episodes")
-    rc = supervisor.run(until=follow)
+    finished_at: list[float] = []
+
+    def done() -> bool:
+        """All episodes ran, and a recording learner has written them (it exits after them; 60 s at most)."""
+        if not follow():
+            return False
+        finished_at[:] = finished_at or [time.monotonic()]
+        return not args.record or supervisor.returncodes["learner"] is not None or \
+            time.monotonic() - finished_at[0] > 60
+
+    rc = supervisor.run(until=done)
     follow()
     if not rows:
         print(f"hdrqn robot: no episode finished (exit {rc}); see the node logs in {out / 'logs'}", file=sys.stderr)

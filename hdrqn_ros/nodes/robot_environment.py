@@ -46,7 +46,7 @@ PARAMETERS = {**ENV_DEFAULTS, "use_sim_time": False, "step_period": 2.5, "pose_t
               "subgoal_table": "", "subgoal_poses_topic": "", "new_layout_each_episode": False,
               "goal_tolerance": 0.125, "max_steps": 0, "cell_size_m": 0.25, "heading_up": False,
               "lethal": nav.LETHAL, "unknown_cells": "outside", "stale_after_s": 5.0, "action_timeout": 5.0,
-              "autostart": True, "max_episodes": 0, "episode_log": ""}
+              "autostart": True, "max_episodes": 0, "episode_log": "", "wait_for_learner": False}
 """``step_period``: seconds (ROS time) per agent step; ``goal_tolerance``: metres within
 which the robot is at a place; ``max_steps``: step limit (0: the domain's, 50);
 ``cell_size_m``: metres per simulator cell in the observation; ``heading_up``: observation
@@ -55,7 +55,9 @@ turned with the robot's yaw (forward/turn action tables) instead of north-up;
 ``stale_after_s``: a pose or costmap older than this (ROS time since it arrived) holds the
 next step; ``action_timeout``: wall seconds before a missing action is reported and the
 step re-published; ``new_layout_each_episode``: start an episode only on places published
-after the last one ended; ``max_episodes``: stop after this many (0: never)."""
+after the last one ended; ``max_episodes``: stop after this many (0: never);
+``wait_for_learner``: start the first episode only once a learner is heard (its
+``learner_credit``): a learner that records the episodes gets all of them."""
 
 RULES = {
     **ENV_RULES,
@@ -82,6 +84,7 @@ RULES = {
     "autostart": ParameterRule("start the next episode as soon as one ends (false: on ~/start_episode)", live=True),
     "max_episodes": ParameterRule("exit after this many episodes (0: never)", live=True, low=0, high=2**31),
     "episode_log": ParameterRule("append each finished episode to this JSON-lines file ('': off)"),
+    "wait_for_learner": ParameterRule("start the first episode once a learner is heard (one that records them all)"),
 }
 """Descriptions and rules of :data:`PARAMETERS`; the live ones take effect at the next step."""
 
@@ -171,6 +174,10 @@ class RobotEnvironmentNode:
         self.episode_log = open(params["episode_log"], "a", buffering=1) if params["episode_log"] else None
         self.option_subgoal = -1  # the current option's place (the meta-controller's subgoal), for the markers
         node.create_subscription(wire.INTS, wire.SUBGOAL, self._on_subgoal, wire.STEP_QOS)
+        self.learner_heard = False
+        if params["wait_for_learner"]:
+            node.create_subscription(wire.FLOATS, wire.CREDIT, lambda _: setattr(self, "learner_heard", True),
+                                     LATCHED_QOS)
         self.pub_markers = node.create_publisher(MARKER_ARRAY, MARKERS)
         self.wait_reason = ""
         self.diagnostics = Diagnostics(node, self._health)
@@ -350,6 +357,8 @@ class RobotEnvironmentNode:
         if not self.running:
             if not self.start_requested:
                 return
+            if self.params["wait_for_learner"] and not self.learner_heard:
+                return self._wait(f"for a learner on {self.node.resolve_topic(wire.CREDIT)}")
             if self.places is None:
                 return self._wait(f"no places yet on {self.node.resolve_topic(self.params['subgoal_poses_topic'])}")
             new_layout = self.params["new_layout_each_episode"]

@@ -76,31 +76,18 @@ def rclpy_import_error() -> str:
 
 
 @lru_cache(maxsize=None)
-def _message_class(type_name: str) -> type:
-    """The rosidl Python class for ``"pkg/msg/Type"``."""
+def _interface_class(type_name: str, kind: str = "msg") -> type:
+    """The rosidl Python class for ``"pkg/msg/Type"`` (``kind`` "srv": ``"pkg/srv/Type"``)."""
+    what = "message" if kind == "msg" else "service"
     parts = type_name.split("/")
-    if len(parts) != 3 or parts[1] != "msg" or not all(parts):
-        raise ValueError(f"message type {type_name!r} is not of the form 'pkg/msg/Type'")
+    if len(parts) != 3 or parts[1] != kind or not all(parts):
+        raise ValueError(f"{what} type {type_name!r} is not of the form 'pkg/{kind}/Type'")
     pkg, _, name = parts
     try:
-        return getattr(importlib.import_module(f"{pkg}.msg"), name)
+        return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
     except (ImportError, AttributeError):
-        raise ValueError(f"unknown message type {type_name!r}: no class {name} in the Python "
-                         f"module {pkg}.msg (is the package built and sourced?)") from None
-
-
-@lru_cache(maxsize=None)
-def _service_class(type_name: str) -> type:
-    """The rosidl Python class for ``"pkg/srv/Type"``."""
-    parts = type_name.split("/")
-    if len(parts) != 3 or parts[1] != "srv" or not all(parts):
-        raise ValueError(f"service type {type_name!r} is not of the form 'pkg/srv/Type'")
-    pkg, _, name = parts
-    try:
-        return getattr(importlib.import_module(f"{pkg}.srv"), name)
-    except (ImportError, AttributeError):
-        raise ValueError(f"unknown service type {type_name!r}: no class {name} in the Python "
-                         f"module {pkg}.srv (is the package built and sourced?)") from None
+        raise ValueError(f"unknown {what} type {type_name!r}: no class {name} in the Python "
+                         f"module {pkg}.{kind} (is the package built and sourced?)") from None
 
 
 def _qos_profile(qos: QoS) -> QoSProfile:
@@ -172,7 +159,7 @@ class RclpyNode(Node):
 
     def msg(self, type_name: str) -> type:
         """The rosidl class for ``"pkg/msg/Type"``; :class:`ValueError` for an unknown type."""
-        return _message_class(type_name)
+        return _interface_class(type_name)
 
     def to_cdr(self, msg: Any) -> bytes:
         """CDR through the RMW's serializer (``rclpy.serialization``), header included."""
@@ -215,7 +202,7 @@ class RclpyNode(Node):
         return self._node.create_subscription(cls, topic, on_sample, _qos_profile(qos), raw=True)
 
     def create_service(self, type_name: str, name: str, callback: Callable[[Any, Any], Any]) -> Any:
-        return self._node.create_service(_service_class(type_name), name, callback)
+        return self._node.create_service(_interface_class(type_name, "srv"), name, callback)
 
     def create_timer(self, period_s: float, callback: Callable[[], None]) -> Any:
         """A timer on the steady clock: wall time as the port says, even with ``use_sim_time``."""

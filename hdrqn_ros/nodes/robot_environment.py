@@ -222,22 +222,23 @@ class RobotEnvironmentNode:
                                      f"{self.params['cell_size_m']} m ({need:.2f} m)")
         nav.costmap_to_observation(msg, view_cells=self.view, cell_size_m=self.params["cell_size_m"])  # size checks
 
-    def _on_costmap(self, msg) -> None:
+    def _usable_costmap(self, msg, which: str) -> bool:
+        """``msg`` can be drawn from (else the rejection is logged); ``which``: costmap or global."""
         try:
-            self._check_costmap(msg, "the costmap")
+            self._check_costmap(msg, "the costmap" if which == "costmap" else "the global costmap")
         except (nav.NavConfigError, ValueError) as exc:
-            self.rejected["costmap"].warn(exc)
-            return
-        self.costmap, self.costmap_ns = msg, self.clock.now_ns() or 0
-        self.costmap_stamp = RosTime.stamp_ns(msg.header)
+            self.rejected[which].warn(exc)
+            return False
+        return True
+
+    def _on_costmap(self, msg) -> None:
+        if self._usable_costmap(msg, "costmap"):
+            self.costmap, self.costmap_ns = msg, self.clock.now_ns() or 0
+            self.costmap_stamp = RosTime.stamp_ns(msg.header)
 
     def _on_global_costmap(self, msg) -> None:
-        try:
-            self._check_costmap(msg, "the global costmap")
-        except (nav.NavConfigError, ValueError) as exc:
-            self.rejected["global"].warn(exc)
-            return
-        self.global_costmap = msg
+        if self._usable_costmap(msg, "global"):
+            self.global_costmap = msg
 
     def _on_places(self, msg) -> None:
         try:

@@ -27,14 +27,13 @@ from hdrqn_ros.nodes import nav
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.nodes.common import (ENV_DEFAULTS, ENV_RULES, NodeConfigError, check_num_envs, live_parameters,
                                     make_acting_network, run_node)
-from hdrqn_ros.nodes.ros_time import RosTime
 from hdrqn_ros.protocol.follower import StepFollower, all_done, done
 from hdrqn_ros.training.checkpoint import CheckpointError
 
 _ONE = np.ones(1, bool)  # the rows mask of a free-running (costmap) sub-controller's one environment
 
 CONTROLLER_PARAMETERS = {**ENV_DEFAULTS, "epsilon": -1.0, "checkpoint": "", "policy": "", "meta_state": "c",
-                         "num_envs": 1, "use_sim_time": False, "quiet_input_s": 10.0}
+                         "num_envs": 1, "quiet_input_s": 10.0}
 """``epsilon`` < 0: explore with the learner's schedule (1.0 until it is heard from);
 ``checkpoint``: initial weights (``RUN_DIR/checkpoints/last.pt``); ``policy``: instead, an
 exported policy directory (``hdrqn export``; torch-free, frozen; its algo, sizes and
@@ -42,7 +41,7 @@ hDRQNv2 ``meta_state`` must be the node's); ``meta_state``: which LSTM state hDR
 meta-controller reads, ``c`` or ``h``; ``num_envs``: the environment node's batch size
 (the same on every node of a group); ``quiet_input_s``: wall seconds without any input
 after which the node says (once per quiet spell) what it waits for and which node would
-publish it; ``use_sim_time``: ROS time from ``/clock`` (the stale-input check). The Nav2 adapters add
+publish it. The Nav2 adapters add
 :data:`~hdrqn_ros.nodes.nav.META_PARAMETERS` / :data:`~hdrqn_ros.nodes.nav.SUB_PARAMETERS`."""
 
 CONTROLLER_RULES = {
@@ -62,7 +61,8 @@ CONTROLLER_RULES = {
     "observation_source": ParameterRule("topic: the environment's observation; costmap: free-running on costmap_topic",
                                         choices=("topic", "costmap")),
     "costmap_topic": ParameterRule("the nav_msgs/OccupancyGrid observed with observation_source costmap"),
-    "stale_after_s": ParameterRule("an observation older than this (ROS time) stops the robot (zero command)",
+    "stale_after_s": ParameterRule("wall seconds without an observation after which the robot is stopped (zero "
+                                   "command)",
                                    live=True, positive=True),
 }
 """Descriptions and rules of the controllers' parameters (``ros2 param describe``); live:
@@ -84,7 +84,6 @@ class _Controller(StepFollower):
             raise NodeConfigError(f"meta_state must be 'c' or 'h', got {params['meta_state']!r}")
         if not params["quiet_input_s"] > 0:
             raise NodeConfigError(f"quiet_input_s must be > 0, got {params['quiet_input_s']!r}")
-        self.clock = RosTime(node, params["use_sim_time"])
         self.heard: dict[str, tuple[float, str]] = {}  # input -> (last heard, wall s; who publishes it)
         self.quiet_reported: set[str] = set()
         node.create_timer(1.0, self._report_quiet_inputs)
@@ -203,7 +202,7 @@ class SubControllerNode(_Controller):
         self.pub_cmd = node.create_publisher(self.actions.type_name, params["cmd_vel_topic"]) if self.actions else None
         if not params["stale_after_s"] > 0:
             raise NodeConfigError(f"stale_after_s must be > 0, got {params['stale_after_s']!r}")
-        self.observed_ns: int | None = None  # ROS time the last observation arrived
+        self.observed_at: float | None = None  # wall time (monotonic s) the last observation arrived
         self.moving = False  # the last command published was not the zero one
         if self.pub_cmd is not None:
             node.create_timer(0.05, self._stop_if_stale)
@@ -235,7 +234,7 @@ class SubControllerNode(_Controller):
                     wire.SUBGOAL_IMAGES, m, OBS_SIZE * self.net.num_subgoals), wire.STEP_QOS)
 
     def _on_observation(self, msg) -> None:
-        self.observed_ns = self.clock.now_ns()
+        self.observed_at = time.monotonic()
         self._on_image(wire.OBSERVATION, msg)
 
     def _command(self, action: int | None, stamp=(0, 0)):
@@ -261,14 +260,12 @@ class SubControllerNode(_Controller):
         return found
 
     def _stale(self) -> bool:
-        now = self.clock.now_ns()
-        return self.pub_cmd is not None and now is not None and self.observed_ns is not None and \
-            now - self.observed_ns > self.params["stale_after_s"] * 1e9
+        return self.pub_cmd is not None and self.observed_at is not None and \
+            time.monotonic() - self.observed_at > self.params["stale_after_s"]
 
     def _stop_if_stale(self) -> None:
-        now = self.clock.now_ns()
         if self.moving and self._stale():
-            self.stop(f"the observation is {(now - self.observed_ns) / 1e9:.1f} s old "
+            self.stop(f"the observation is {time.monotonic() - self.observed_at:.1f} s old "
                       f"(stale_after_s {self.params['stale_after_s']})")
 
     def _on_subgoal(self, msg) -> None:
@@ -289,7 +286,7 @@ class SubControllerNode(_Controller):
         obs = self.decode(self.params["costmap_topic"], lambda: nav.costmap_to_observation(msg, view_cells=view))
         if obs is None:
             return
-        self.observed_ns = self.clock.now_ns()
+        self.observed_at = time.monotonic()
         self.costmaps += 1
         key = wire.key_of(msg.header.stamp) or self.costmaps
         x = obs

@@ -14,9 +14,9 @@ the same ``seed`` (fires left out); its places go out as a latched
 robot-side environment's ``env_step`` says the episode ended.
 
 Simulated time runs ``real_time_factor`` times faster than the wall clock (0: as fast as it
-can). With ``lockstep`` (``action`` or ``cmd_vel``) the clock stops at each agent step until
-the agent answered it, and at the next step's time until the robot-side environment
-published it (as PX4's lockstep simulation does), so a loaded machine never changes what
+can). With ``lockstep`` (``action`` or ``cmd_vel``) the clock stands at 0 until the
+robot-side environment's first step, stops at each agent step until the agent answered
+it, and at the next step's time until the robot-side environment published it (as PX4's lockstep simulation does), so a loaded machine never changes what
 happens; a hold longer than ``lockstep_timeout`` wall seconds is logged and released.
 It is not a robot simulator: no dynamics, no sensors, no localisation error, one frame.
 """
@@ -117,7 +117,8 @@ class LoopbackRobotNode:
         self.action_key = self.answered_key = -1  # the latest action's key; the latest step answered
         self.moves = self.moves_used = 0  # non-zero commands received; those that answered steps
         self.held_since: float | None = None
-        self.released_key: int | None = None  # the step whose hold timed out (runs free until the next step)
+        self.released_key: int | None = -1  # the step whose hold timed out (runs free until the next step;
+        #                                     None: the wait for the first step)
         self._new_layout()
         period = params["tick"] / params["real_time_factor"] if params["real_time_factor"] > 0 else 0.001
         node.create_timer(period, self._tick)
@@ -170,8 +171,10 @@ class LoopbackRobotNode:
     # -- simulation ----------------------------------------------------------------------------------
     def _holding(self) -> str:
         """What the lockstep clock waits for ('' when it may run)."""
-        if self.params["lockstep"] == "off" or self.step_key is None or self.released_key == self.step_key:
+        if self.params["lockstep"] == "off" or self.released_key == self.step_key:
             return ""
+        if self.step_key is None:  # the first step comes at time 0: every agent step gets its whole period
+            return "the robot environment's first step"
         if not self.step_done and not self._answered():
             return f"the agent's {self.params['lockstep']} for step key {self.step_key}"
         if self.step_done or self.now_ns >= self.step_key + self.params["step_period"] * 1e9:

@@ -30,8 +30,8 @@ from a YAML ``subgoal_table`` or a latched ``geometry_msgs/PoseArray`` on ``subg
 SUB_PARAMETERS = {"action_table": "", "cmd_vel_topic": "cmd_vel", "observation_source": "topic",
                   "costmap_topic": "/local_costmap/costmap", "stale_after_s": 5.0}
 """sub_controller parameters for the Nav2 path; ``observation_source``: 'topic' (the
-environment's or robot_environment's) or 'costmap'; ``stale_after_s``: an observation older
-than this (ROS time) stops the robot (a zero command)."""
+environment's or robot_environment's) or 'costmap'; ``stale_after_s``: wall seconds without
+an observation after which the robot is stopped (a zero command)."""
 LETHAL = 65
 """Default threshold: OccupancyGrid cost (0..100) at or above it is drawn as a wall."""
 _POSE_KEYS = {"x", "y", "yaw"}

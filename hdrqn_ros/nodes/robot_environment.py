@@ -1,7 +1,8 @@
 """``robot_environment`` node: the environment node's place on a robot.
 
 On a robot nothing simulates the task, so this node builds, every ``step_period`` seconds
-of ROS time (simulated with ``use_sim_time``), what the environment node publishes
+of ROS time (simulated with ``use_sim_time``; from a pose stamped at or after the step's
+time), what the environment node publishes
 (``docs/topics.md``): ``observation`` (the local costmap around the robot, drawn as the
 simulator draws its view, the places still to visit in their colours), ``subgoal_images``
 (the costmap around each place), ``env_step`` (``at_subgoal`` from the robot's distance to
@@ -368,8 +369,9 @@ class RobotEnvironmentNode:
             if why := self._inputs_missing(now, self.places_stamp if new_layout else 0):
                 return self._wait(f"to start an episode: {why}")
             return self._start_episode(now)
-        if self.pending_action is None or now < self.step_ns + self.period_ns:
-            return
+        due = self.step_ns + self.period_ns
+        if self.pending_action is None or now < due or self.pose_stamp < due:
+            return  # the action, the step's time, and a pose measured at or after it
         if why := self._inputs_missing(now, 0):
             return self._wait(f"for step t={int(self.record['t']) + 1}: {why}")
         self._advance(now)

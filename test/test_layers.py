@@ -17,8 +17,9 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "hdrqn_ros"
 
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
-    ("base", ("hdrqn_ros.throttle", "hdrqn_ros.yaml_files", "hdrqn_ros.hashing")),
+    ("base", ("hdrqn_ros.throttle", "hdrqn_ros.yaml_files", "hdrqn_ros.hashing", "hdrqn_ros.extras")),
     ("envs and critic", ("hdrqn_ros.envs", "hdrqn_ros.critic", "hdrqn_ros.__init__")),
+    ("robot task and kinematics", ("hdrqn_ros.robot",)),
     ("torch-free policy", ("hdrqn_ros.deploy",)),
     ("config", ("hdrqn_ros.config",)),
     ("agents", ("hdrqn_ros.agents",)),
@@ -28,7 +29,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("recording", ("hdrqn_ros.recording",)),
     ("middleware backends", ("hdrqn_ros.middleware",)),
     ("nodes", ("hdrqn_ros.nodes",)),
-    ("launch and cli", ("hdrqn_ros.graph", "hdrqn_ros.supervisor", "hdrqn_ros.launch_support",
+    ("launch and cli", ("hdrqn_ros.graph", "hdrqn_ros.robot_graph", "hdrqn_ros.supervisor", "hdrqn_ros.launch_support",
                         "hdrqn_ros.experiments", "hdrqn_ros.cluster", "hdrqn_ros.cli")),
 ]
 """Lowest first. A module may import from its own layer and the layers below. The port

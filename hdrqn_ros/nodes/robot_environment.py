@@ -211,7 +211,7 @@ class RobotEnvironmentNode:
         except nav.NavConfigError as exc:
             self.rejected["pose"].warn(exc)
             return
-        self.pose, self.pose_ns, self.pose_stamp = pose, self.clock.now_ns() or 0, RosTime.stamp_ns(msg.header)
+        self.pose, self.pose_ns, self.pose_stamp = pose, self.clock.now_ns() or 0, wire.key_of(msg.header.stamp)
 
     def _check_costmap(self, msg, what: str) -> None:
         self._check_frame(msg.header.frame_id, what)
@@ -235,7 +235,7 @@ class RobotEnvironmentNode:
     def _on_costmap(self, msg) -> None:
         if self._usable_costmap(msg, "costmap"):
             self.costmap, self.costmap_ns = msg, self.clock.now_ns() or 0
-            self.costmap_stamp = RosTime.stamp_ns(msg.header)
+            self.costmap_stamp = wire.key_of(msg.header.stamp)
 
     def _on_global_costmap(self, msg) -> None:
         if self._usable_costmap(msg, "global"):
@@ -248,7 +248,7 @@ class RobotEnvironmentNode:
         except nav.NavConfigError as exc:
             self.rejected["places"].warn(exc)
             return
-        self.places, self.places_stamp = places, RosTime.stamp_ns(msg.header)
+        self.places, self.places_stamp = places, wire.key_of(msg.header.stamp)
 
     def _on_action(self, msg) -> None:
         try:

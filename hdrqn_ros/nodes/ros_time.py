@@ -1,8 +1,8 @@
 """A node's ROS time: simulated (``/clock``) with ``use_sim_time``, else the system clock.
 
-The port's timers run on wall time; nodes that pace themselves in ROS time (the
-robot-side environment's steps, a controller's stale-input check) read it here, on
-both backends. Integer nanoseconds throughout.
+The port's timers run on wall time; a node that paces itself in ROS time (the robot-side
+environment's steps) reads it here, on both backends. Integer nanoseconds throughout
+(a stamp's: :func:`hdrqn_ros.protocol.wire.key_of`).
 """
 from __future__ import annotations
 
@@ -28,15 +28,9 @@ class RosTime:
             node.create_subscription(wire.CLOCK_TYPE, wire.CLOCK, self._on_clock, CLOCK_QOS)
 
     def _on_clock(self, msg) -> None:
-        stamp = msg.clock
-        self.sim_ns = int(stamp.sec) * 10**9 + int(stamp.nanosec)
+        self.sim_ns = wire.key_of(msg.clock)
         if self.on_clock is not None:
             self.on_clock()
 
     def now_ns(self) -> int | None:
         return self.sim_ns if self.use_sim_time else time.time_ns()
-
-    @staticmethod
-    def stamp_ns(header) -> int:
-        """A message header's stamp in ns."""
-        return int(header.stamp.sec) * 10**9 + int(header.stamp.nanosec)

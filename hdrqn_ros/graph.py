@@ -8,7 +8,6 @@ parameters file (``/**`` for what all nodes share), passed with ``--params-file`
 """
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import yaml
@@ -17,7 +16,7 @@ from hdrqn_ros.agents.algorithms import ALGO_SPECS
 from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.middleware import BACKEND_ENV
 from hdrqn_ros.protocol.wire import group_namespaces
-from hdrqn_ros.supervisor import ProcessSpec
+from hdrqn_ros.supervisor import ProcessSpec, python_command
 
 NODE_MODULES = {"environment": "hdrqn_ros.nodes.environment", "critic": "hdrqn_ros.nodes.critic",
                 "meta_controller": "hdrqn_ros.nodes.controllers:main_meta",
@@ -52,13 +51,6 @@ def write_params(cfg: TrainConfig, run_dir: Path, groups: int, config_file: Path
     return path
 
 
-def _command(node: str) -> list[str]:
-    module, _, func = NODE_MODULES[node].partition(":")
-    if not func:
-        return [sys.executable, "-m", module]
-    return [sys.executable, "-c", f"import sys; from {module} import {func} as m; sys.exit(m())"]
-
-
 def graph_processes(cfg: TrainConfig, params: Path, groups: int, respawn: bool = True,
                     middleware: dict[str, str] | None = None) -> list[ProcessSpec]:
     """The processes of the graph: per group its nodes (seeded ``seed + 1000 * i``), then the learner.
@@ -77,12 +69,12 @@ def graph_processes(cfg: TrainConfig, params: Path, groups: int, respawn: bool =
     specs = []
     for i, ns in enumerate(group_namespaces(groups)):
         for node in nodes:
-            argv = _command(node) + ["--ros-args", "--params-file", str(params), "-r", f"__ns:={ns}",
+            argv = python_command(NODE_MODULES[node]) + ["--ros-args", "--params-file", str(params), "-r", f"__ns:={ns}",
                                      "-p", f"seed:={cfg.seed + 1000 * i}"]
             if node == "environment" and i > 0:
                 argv += ["-p", "publish_clock:=false"]  # one sim clock: group 0's
             specs.append(ProcessSpec(name=f"{ns.strip('/') or 'graph'}/{node}", argv=argv, respawn=respawn,
                                      env=env(node)))
-    learner_argv = _command("learner") + ["--ros-args", "--params-file", str(params), "-p", "resume:=true"]
+    learner_argv = python_command(NODE_MODULES["learner"]) + ["--ros-args", "--params-file", str(params), "-p", "resume:=true"]
     specs.append(ProcessSpec(name="learner", argv=learner_argv, respawn=respawn, required=True, env=env("learner")))
     return specs

@@ -15,13 +15,12 @@ graph's own topics: ``hdrqn train --from-bag`` trains on it).
 """
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
 
-from hdrqn_ros.supervisor import ProcessSpec
+from hdrqn_ros.supervisor import ProcessSpec, python_command
 
 MODES = ("sub-drives", "meta-only")
 NODE_MODULES = {"loopback_robot": "hdrqn_ros.nodes.loopback_robot", "robot_environment":
@@ -92,18 +91,17 @@ def write_params(run: RobotRun, path: Path) -> Path:
     return path
 
 
-def robot_processes(run: RobotRun, params: Path, hierarchical: bool) -> list[ProcessSpec]:
+def robot_processes(run: RobotRun, params: Path, hierarchical: bool, managed: tuple[str, ...] = ()) -> list[ProcessSpec]:
     """The node processes (the robot environment is required, its exit ends the session;
-    when recording, the learner's exit does: it records every episode first)."""
+    when recording, the learner's exit does: it records every episode first). The nodes
+    named in ``managed`` start as managed nodes, unconfigured (``--managed``)."""
     nodes = ["loopback_robot", "robot_environment", "critic", "meta_controller", "sub_controller"] if hierarchical \
         else ["loopback_robot", "robot_environment", "sub_controller"]
     if run.record:
         nodes.append("learner")
     specs = []
     for node in nodes:
-        module, _, func = NODE_MODULES[node].partition(":")
-        command = [sys.executable, "-m", module] if not func else \
-            [sys.executable, "-c", f"import sys; from {module} import {func} as m; sys.exit(m())"]
+        command = python_command(NODE_MODULES[node]) + (["--managed"] if node in managed else [])
         specs.append(ProcessSpec(name=node, argv=command + ["--ros-args", "--params-file", str(params)],
                                  required=node == "robot_environment" and not run.record))
     return specs

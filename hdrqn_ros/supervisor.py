@@ -32,6 +32,15 @@ USAGE_EXIT = 2
 _LIVE: set[subprocess.Popen] = set()  # children not yet reaped (atexit safety net)
 
 
+def python_command(entry: str) -> list[str]:
+    """The argv that runs ``entry`` in this Python: ``"pkg.module"`` (``python -m``) or
+    ``"pkg.module:func"`` (the function's return value is the exit code)."""
+    module, _, func = entry.partition(":")
+    if not func:
+        return [sys.executable, "-m", module]
+    return [sys.executable, "-c", f"import sys; from {module} import {func} as m; sys.exit(m())"]
+
+
 def _killpg(pid: int, sig: int) -> None:
     try:
         os.killpg(pid, sig)

@@ -87,14 +87,16 @@ class Probe:
         self.mw.shutdown()
 
 
-def start(tmp_path: Path, checkpoint: Path, mode: str, episodes: int = EPISODES, **overrides) -> tuple[Supervisor, Path]:
-    """The robot graph's processes for ``checkpoint`` (``overrides``: extra parameters by node)."""
+def start(tmp_path: Path, checkpoint: Path, mode: str, episodes: int = EPISODES, managed: tuple[str, ...] = (),
+          **overrides) -> tuple[Supervisor, Path]:
+    """The robot graph's processes for ``checkpoint`` (``overrides``: extra parameters by node;
+    ``managed``: nodes started as managed nodes)."""
     log = tmp_path / "episodes.jsonl"
     run = RobotRun(algo="hdrqn-v2", env=ENV, view="5", checkpoint=str(checkpoint), mode=mode, episodes=episodes,
                    seed=SEED, real_time_factor=40.0, episode_log=str(log))
     params = write_params(run, tmp_path / "params.yaml")
     specs = []
-    for spec in robot_processes(run, params, hierarchical=True):
+    for spec in robot_processes(run, params, hierarchical=True, managed=managed):
         extra = [f"{name}:={value}" for name, value in overrides.get(spec.name, {}).items()]
         specs.append(ProcessSpec(spec.name, spec.argv + [a for item in extra for a in ("-p", item)],
                                  required=spec.required))

@@ -64,15 +64,33 @@ class ParameterRule:
                 return f"parameter {name} must be in {self.low:g}..{self.high:g}, got {value!r}"
         return None
 
-    @property
-    def constraints(self) -> str:
-        """The rules in words (the descriptor's ``additional_constraints``)."""
-        words = [] if self.live else ["read-only while the node runs"]
+    def constraints(self, managed: bool = False) -> str:
+        """The rules in words (the descriptor's ``additional_constraints``); ``managed``: the
+        parameter belongs to a managed node, where a not-live one changes while unconfigured."""
+        words = [] if self.live else \
+            ["changes only while the node is unconfigured" if managed else "read-only while the node runs"]
         if self.positive:
             words.append("> 0")
         if self.choices:
             words.append("one of " + ", ".join(self.choices))
         return "; ".join(words)
+
+
+class Lifecycle(Protocol):
+    """What a managed (lifecycle) node does on each transition of ROS 2's node state machine
+    (``unconfigured -> inactive -> active``), called on the spinning thread."""
+
+    def on_configure(self) -> str:
+        """Build the node from its parameters: "" when configured, else why not (the node stays unconfigured)."""
+
+    def on_activate(self) -> None: ...
+
+    def on_deactivate(self) -> None: ...
+
+    def on_cleanup(self) -> None:
+        """Release everything configure made (back to unconfigured)."""
+
+    def on_shutdown(self) -> None: ...
 
 
 class Publisher(Protocol):
@@ -155,6 +173,11 @@ class Node(ABC):
         rule), then ``apply(name, value)`` is called. The Cyclone backend has no parameter
         services: nothing to do there."""
 
+    def release(self) -> None:
+        """Destroy every publisher, subscription, timer, service and parameter callback made
+        so far (a managed node's cleanup); declared parameters stay, with their values."""
+        raise NotImplementedError(f"{type(self).__name__} has no managed mode")
+
     @property
     @abstractmethod
     def logger(self) -> logging.Logger: ...
@@ -176,6 +199,13 @@ class Middleware(ABC):
     def create_node(self, name: str, namespace: str = "") -> Node:
         """A node; ``--ros-args -r __node:=`` / ``__ns:=`` given to the process override
         ``name`` / ``namespace``."""
+
+    def create_managed_node(self, name: str, lifecycle: Lifecycle) -> Node:
+        """A managed (lifecycle) node, born unconfigured: ROS 2's ``~/change_state`` and
+        ``~/get_state`` services drive ``lifecycle``'s transitions. Only rclpy has them:
+        elsewhere :class:`BackendError`."""
+        raise BackendError(f"the {self.backend} backend has no managed (lifecycle) nodes: {name} needs the "
+                           f"rclpy backend to run managed")
 
     @abstractmethod
     def spin(self, until: Callable[[], bool] | None = None, timeout_s: float | None = None) -> None:

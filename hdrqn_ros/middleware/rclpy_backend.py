@@ -16,6 +16,7 @@ import importlib
 import logging
 import sys
 import time
+import traceback
 from functools import lru_cache
 from typing import Any, Callable
 
@@ -27,6 +28,8 @@ try:
     from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
     from rclpy.exceptions import InvalidParameterTypeException
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy_c
+    from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
     from rclpy.parameter import Parameter
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from rclpy.serialization import deserialize_message, serialize_message
@@ -39,8 +42,8 @@ else:
 import numpy as np
 
 from hdrqn_ros.middleware.network import apply_rmw_network_defaults
-from hdrqn_ros.middleware.port import (DEFAULT_QOS, Middleware, Node, ParameterError, ParameterRule, Publisher, QoS,
-                                       RosArgsError)
+from hdrqn_ros.middleware.port import (DEFAULT_QOS, Lifecycle, Middleware, Node, ParameterError, ParameterRule,
+                                       Publisher, QoS, RosArgsError)
 from hdrqn_ros.middleware.ros_args import ProcessSettings, check_overrides, process_settings, split_ros_args
 from hdrqn_ros.throttle import Throttle
 
@@ -100,12 +103,13 @@ def _qos_profile(qos: QoS) -> QoSProfile:
     )
 
 
-def _descriptor(rule: ParameterRule | None, default: Any) -> ParameterDescriptor:
-    """The rclpy descriptor of a parameter's rule (none: an undescribed, read-write one)."""
+def _descriptor(rule: ParameterRule | None, default: Any, managed: bool) -> ParameterDescriptor:
+    """The rclpy descriptor of a parameter's rule (none: an undescribed, read-write one). On a
+    managed node a not-live parameter is writable (checked by the node's state instead)."""
     if rule is None:
         return ParameterDescriptor()
-    descriptor = ParameterDescriptor(description=rule.description, read_only=not rule.live,
-                                     additional_constraints=rule.constraints)
+    descriptor = ParameterDescriptor(description=rule.description, read_only=not (rule.live or managed),
+                                     additional_constraints=rule.constraints(managed))
     if rule.low is not None and rule.high is not None and not isinstance(default, bool):
         if isinstance(default, int):
             descriptor.integer_range = [IntegerRange(from_value=int(rule.low), to_value=int(rule.high), step=0)]
@@ -141,12 +145,19 @@ class _RcutilsHandler(logging.Handler):
 
 
 class RclpyNode(Node):
-    """A :class:`Node` backed by an ``rclpy.node.Node``."""
+    """A :class:`Node` backed by an ``rclpy.node.Node`` (or, managed, a ``LifecycleNode``).
+
+    It keeps what it creates, so that a managed node's cleanup can :meth:`release` it. A
+    managed node's not-live parameters may change while it is unconfigured: they are read at
+    the next configure; in any other state they are refused."""
 
     backend_name = "rclpy"
 
-    def __init__(self, node: rclpy.node.Node, max_message_bytes: int) -> None:
+    def __init__(self, node: rclpy.node.Node, max_message_bytes: int, managed: bool = False) -> None:
         self._node = node
+        self.managed = managed
+        self._owned: list[tuple[Callable[[Any], Any], Any]] = []  # (destroy, entity), in creation order
+        self._rules: dict[str, ParameterRule | None] = {}  # every parameter this node declared, and its rule
         self._max_message_bytes = max_message_bytes
         self.name = node.get_name()  # after any __node / __ns remapping
         self.namespace = node.get_namespace()
@@ -156,6 +167,31 @@ class RclpyNode(Node):
         self._logger.propagate = False
         self._logger.addHandler(_RcutilsHandler(node.get_logger()))
         self._destroyed = False
+        if managed:
+            node.add_on_set_parameters_callback(self._check_managed_change)
+
+    def _own(self, destroy: Callable[[Any], Any], entity: Any) -> Any:
+        self._owned.append((destroy, entity))
+        return entity
+
+    def release(self) -> None:
+        for destroy, entity in reversed(self._owned):
+            destroy(entity)
+        self._owned.clear()
+
+    def _check_managed_change(self, parameters: list[Parameter]) -> SetParametersResult:
+        """A managed node's not-live parameters: refused while configured, else checked by their rules."""
+        for parameter in parameters:
+            rule = self._rules.get(parameter.name)
+            if rule is None or rule.live:
+                continue
+            if not self._node.unconfigured:
+                return SetParametersResult(successful=False, reason=(
+                    f"parameter {parameter.name} is read when the node configures: it changes only while the node is "
+                    f"unconfigured (deactivate and cleanup first)"))
+            if why := rule.refusal(parameter.name, parameter.value):
+                return SetParametersResult(successful=False, reason=why)
+        return SetParametersResult(successful=True)
 
     def msg(self, type_name: str) -> type:
         """The rosidl class for ``"pkg/msg/Type"``; :class:`ValueError` for an unknown type."""
@@ -174,7 +210,8 @@ class RclpyNode(Node):
         return array.array(_TYPECODES[values.dtype.str[1:]], values.tobytes())
 
     def create_publisher(self, type_name: str, topic: str, qos: QoS = DEFAULT_QOS) -> Publisher:
-        return self._node.create_publisher(self.msg(type_name), topic, _qos_profile(qos))
+        return self._own(self._node.destroy_publisher,
+                         self._node.create_publisher(self.msg(type_name), topic, _qos_profile(qos)))
 
     def create_subscription(self, type_name: str, topic: str, callback: Callable[[Any], None],
                             qos: QoS = DEFAULT_QOS, raw: bool = False) -> Any:
@@ -199,16 +236,19 @@ class RclpyNode(Node):
                 return
             callback(msg)
 
-        return self._node.create_subscription(cls, topic, on_sample, _qos_profile(qos), raw=True)
+        return self._own(self._node.destroy_subscription,
+                         self._node.create_subscription(cls, topic, on_sample, _qos_profile(qos), raw=True))
 
     def create_service(self, type_name: str, name: str, callback: Callable[[Any, Any], Any]) -> Any:
-        return self._node.create_service(_interface_class(type_name, "srv"), name, callback)
+        return self._own(self._node.destroy_service,
+                         self._node.create_service(_interface_class(type_name, "srv"), name, callback))
 
     def create_timer(self, period_s: float, callback: Callable[[], None]) -> Any:
         """A timer on the steady clock: wall time as the port says, even with ``use_sim_time``."""
         if period_s <= 0:
             raise ValueError(f"timer period must be > 0 s, got {period_s}")
-        return self._node.create_timer(period_s, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        return self._own(self._node.destroy_timer,
+                         self._node.create_timer(period_s, callback, clock=Clock(clock_type=ClockType.STEADY_TIME)))
 
     def declare_parameters(self, defaults: dict[str, Any], overrides: dict[str, Any] | None = None,
                            rules: dict[str, ParameterRule] | None = None) -> dict[str, Any]:
@@ -219,7 +259,9 @@ class RclpyNode(Node):
         given = check_overrides(self.fully_qualified_name, defaults, overrides)
         values: dict[str, Any] = {}
         for name, default in defaults.items():
-            if not self._node.has_parameter(name):
+            if name in self._rules:  # declared at an earlier configure of this managed node: its value now
+                pass
+            elif not self._node.has_parameter(name):
                 rule = (rules or {}).get(name)
                 try:  # writable and unbounded while its start value is set, then its rule's descriptor
                     self._node.declare_parameter(name, default)
@@ -231,9 +273,10 @@ class RclpyNode(Node):
                 if rule is not None and (why := rule.refusal(name, value)) and \
                         (rule.low is not None or rule.high is not None):
                     raise ParameterError(f"node {self.fully_qualified_name}: {why}")
-                descriptor = _descriptor(rule, default)
+                descriptor = _descriptor(rule, default, self.managed)
                 descriptor.type = self._node.get_parameter(name).type_.value
                 self._node.set_descriptor(name, descriptor)
+                self._rules[name] = rule
             else:  # rclpy's own (use_sim_time)
                 self._set_typed(name, given)
             values[name] = self._node.get_parameter(name).value
@@ -262,6 +305,7 @@ class RclpyNode(Node):
             return SetParametersResult(successful=True)
 
         self._node.add_on_set_parameters_callback(check_then_apply)
+        self._own(self._node.remove_on_set_parameters_callback, check_then_apply)
 
     @property
     def logger(self) -> logging.Logger:
@@ -281,6 +325,65 @@ class RclpyNode(Node):
         if leave_executor and executor is not None:
             executor.remove_node(self._node)
         self._node.destroy_node()
+
+
+def _managed_ros_node(name: str, context: Context, lifecycle: Lifecycle) -> "rclpy.node.Node":
+    """An rclpy ``LifecycleNode`` whose transitions call ``lifecycle``. A failed configure
+    (the reason logged) leaves it unconfigured; an exception in a transition is logged and
+    the node cleaned up (rclpy's error processing, back to unconfigured). A transition that
+    is not allowed from the current state is refused (``success: false``, logged), where
+    rclpy would raise out of the executor for a transition given by id."""
+
+    class ManagedRosNode(LifecycleNode):
+        unconfigured = True  # in the unconfigured state (where its not-live parameters may change)
+
+        def _run(self, what: str, call: Callable[[], Any], unconfigured_after: bool) -> TransitionCallbackReturn:
+            try:
+                why = call()
+            except Exception:
+                self.get_logger().error(f"{what} failed:\n{traceback.format_exc()}")
+                return TransitionCallbackReturn.ERROR
+            if why:
+                self.get_logger().error(f"{what} failed, the node stays unconfigured: {why}")
+                return TransitionCallbackReturn.FAILURE
+            self.unconfigured = unconfigured_after
+            self.get_logger().info(f"{what}: done")
+            return TransitionCallbackReturn.SUCCESS
+
+        def on_configure(self, state):
+            return self._run("configure", lifecycle.on_configure, False)
+
+        def on_activate(self, state):
+            return self._run("activate", lifecycle.on_activate, False)
+
+        def on_deactivate(self, state):
+            return self._run("deactivate", lifecycle.on_deactivate, False)
+
+        def on_cleanup(self, state):
+            return self._run("cleanup", lifecycle.on_cleanup, True)
+
+        def on_shutdown(self, state):
+            return self._run("shutdown", lifecycle.on_shutdown, False)
+
+        def on_error(self, state):
+            return self._run("error processing (cleanup)", lifecycle.on_cleanup, True)
+
+    node = ManagedRosNode(name, context=context)
+    service = node._service_change_state
+    change_state = service.callback
+
+    def refuse_what_is_not_allowed(request, response):
+        try:
+            return change_state(request, response)
+        except _rclpy_c.RCLError as exc:
+            label = node._state_machine.current_state[1]
+            node.get_logger().warning(f"transition {request.transition.label or request.transition.id} refused "
+                                      f"in state {label}: {exc}")
+            response.success = False
+            return response
+
+    service.callback = refuse_what_is_not_allowed
+    return node
 
 
 def _executor(context: Context) -> Any:
@@ -324,8 +427,14 @@ class RclpyMiddleware(Middleware):
         self._closed = False
 
     def create_node(self, name: str, namespace: str = "") -> RclpyNode:
-        node = RclpyNode(rclpy.node.Node(name, namespace=namespace, context=self._context),
-                         self.settings.max_message_bytes)
+        return self._add(RclpyNode(rclpy.node.Node(name, namespace=namespace, context=self._context),
+                                   self.settings.max_message_bytes))
+
+    def create_managed_node(self, name: str, lifecycle: Lifecycle) -> RclpyNode:
+        return self._add(RclpyNode(_managed_ros_node(name, self._context, lifecycle), self.settings.max_message_bytes,
+                                   managed=True))
+
+    def _add(self, node: RclpyNode) -> RclpyNode:
         self._executor.add_node(node._node)
         self._nodes.append(node)
         if len(self._nodes) == 1:

@@ -16,6 +16,8 @@ from hdrqn_ros.envs.registration import GRID_IDS, MONTEZUMA_IDS, make_batch
 from hdrqn_ros.extras import MissingExtra, require
 from hdrqn_ros.middleware import (BackendError, Middleware, Node, ParameterError, ParameterRule, RosArgsError,
                                   open_middleware)
+from hdrqn_ros.middleware.ros_args import split_ros_args
+from hdrqn_ros.nodes.managed import MANAGED_FLAG, ManagedNode
 from hdrqn_ros.protocol.wire import MAX_ENVS
 
 ENV_DEFAULTS = {"algo": "hdrqn-v2", "env": "hdrqn/GridWorld-2Goals-v0", "view": "5", "seed": 0}
@@ -142,20 +144,29 @@ so that a node imports only what it uses: the environment and critic stay small)
 
 
 def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None,
-             input_errors: tuple[type[Exception], ...] = ()) -> int:
+             input_errors: tuple[type[Exception], ...] = (), managed_name: str | None = None) -> int:
     """Open the middleware, build the node object, spin until it finishes, Ctrl-C or
     SIGTERM, then clean up (the object's ``close()`` first, then the middleware).
+
+    A node that can run managed gives its ``managed_name``: with ``--managed`` among the
+    executable's arguments it starts unconfigured and lifecycle transitions build, start
+    and stop it (:mod:`hdrqn_ros.nodes.managed`).
 
     SIGINT (Ctrl-C, what ``ros2 launch`` sends) and SIGTERM are a normal stop: exit code
     the object's ``exit_code`` (0). 2 for bad parameters, arguments, checkpoints, policies or bags:
     :data:`STARTUP_ERRORS` and the node's ``input_errors``."""
     argv = list(sys.argv if argv is None else argv)
+    managed = MANAGED_FLAG in split_ros_args(argv)[0][1:]
+    if managed and managed_name is None:
+        print(f"error: this node has no managed (lifecycle) mode: drop {MANAGED_FLAG}", file=sys.stderr)
+        return 2
     stopped = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stopped.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     middleware = built = None
     try:
         middleware = open_middleware(argv)
-        built = build(middleware)
+        built = ManagedNode(middleware, managed_name, build, (*STARTUP_ERRORS, *input_errors)) if managed \
+            else build(middleware)
         middleware.spin(until=lambda: stopped.is_set() or getattr(built, "finished", False))
         return getattr(built, "exit_code", 0)
     except KeyboardInterrupt:

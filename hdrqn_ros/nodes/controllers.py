@@ -73,6 +73,8 @@ class _Controller(StepFollower):
     role = ""
 
     nav_parameters: dict = {}
+    active = True
+    """Acting (a managed node acts only while active: :mod:`hdrqn_ros.nodes.managed`)."""
 
     def __init__(self, mw: Middleware, name: str):
         node = mw.create_node(name)
@@ -113,10 +115,24 @@ class _Controller(StepFollower):
         return found
 
     def _health(self) -> tuple[int, str, dict[str, str]]:
-        found = self.problems()
         values = {"algo": self.params["algo"], "policy": self.source, "epsilon": f"{self.net.epsilon:g}",
                   "messages_rejected": str(self.rejected)}
+        if not self.active:
+            return OK, "inactive (managed node: activate to act)", values
+        found = self.problems()
         return (WARN, "; ".join(found), values) if found else (OK, "acting", values)
+
+    def activate(self) -> None:
+        """Act from the next step on (what arrived while inactive is forgotten)."""
+        self.reset()
+        now = time.monotonic()
+        self.heard = {topic: (now, publisher) for topic, (_, publisher) in self.heard.items()}
+        self.quiet_reported.clear()
+        self.active = True
+
+    def deactivate(self) -> None:
+        """Stop acting: later steps are ignored."""
+        self.active = False
 
     def _apply(self, name: str, value) -> None:
         """A live parameter changed: ``epsilon`` holds from the next decision on."""
@@ -132,6 +148,8 @@ class _Controller(StepFollower):
         self.quiet_reported.discard(topic)
 
     def _report_quiet_inputs(self) -> None:
+        if not self.active:
+            return
         now = time.monotonic()
         for topic, (last, publisher) in self.heard.items():
             if now - last >= self.params["quiet_input_s"] and topic not in self.quiet_reported:
@@ -140,6 +158,8 @@ class _Controller(StepFollower):
                                          now - last, publisher)
 
     def _on_env_step(self, msg) -> None:
+        if not self.active:
+            return
         self.hear(wire.ENV_STEP)
         self.on_env_step(msg)
 
@@ -281,6 +301,8 @@ class SubControllerNode(_Controller):
 
     def _on_costmap(self, msg) -> None:
         """Free-running: act on each costmap update (no environment node, no lock-step)."""
+        if not self.active:
+            return
         view = int(self.params["view"])
         self.hear(self.params["costmap_topic"])
         obs = self.decode(self.params["costmap_topic"], lambda: nav.costmap_to_observation(msg, view_cells=view))
@@ -356,6 +378,11 @@ class SubControllerNode(_Controller):
         replies.append((self.pub_action, wire.make_records(self.node, wire.INTS, wire.ACTION_FIELDS,
                                                            [[key, a] for a in actions])))
         return replies
+
+    def deactivate(self) -> None:
+        """Stop acting, and stop the robot (the zero command)."""
+        super().deactivate()
+        self.close()
 
     def close(self) -> None:
         """Stop the robot: a zero velocity command."""
@@ -460,8 +487,9 @@ checkpoint it cannot load, a navigation table it cannot use."""
 
 
 def main_sub(argv: list[str] | None = None) -> int:
-    return run_node(lambda mw: SubControllerNode(mw), argv, CONTROLLER_INPUT_ERRORS)
+    return run_node(lambda mw: SubControllerNode(mw), argv, CONTROLLER_INPUT_ERRORS, managed_name="sub_controller")
 
 
 def main_meta(argv: list[str] | None = None) -> int:
-    return run_node(lambda mw: MetaControllerNode(mw), argv, CONTROLLER_INPUT_ERRORS)
+    return run_node(lambda mw: MetaControllerNode(mw), argv, CONTROLLER_INPUT_ERRORS,
+                    managed_name="meta_controller")

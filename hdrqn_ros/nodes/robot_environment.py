@@ -102,6 +102,9 @@ def _pose_msg(msg, x: float, y: float, z: float):
 
 
 class RobotEnvironmentNode:
+    active = True
+    """Stepping (a managed node steps only while active: :mod:`hdrqn_ros.nodes.managed`)."""
+
     def __init__(self, mw: Middleware):
         node = self.node = mw.create_node("robot_environment")
         params = self.params = node.declare_parameters(PARAMETERS, rules=RULES)
@@ -281,6 +284,8 @@ class RobotEnvironmentNode:
                   "places": self.places.source if self.places is not None else "none yet"}
         if self.finished:
             return OK, f"finished {self.episodes_done} episodes", values
+        if not self.active:
+            return OK, "inactive (managed node: activate to step)", values
         waited = 0.0 if self.wait_since is None else time.monotonic() - self.wait_since
         if waited > 2.0:
             return WARN, f"waiting {waited:.0f} s {self.wait_reason}", values
@@ -352,9 +357,21 @@ class RobotEnvironmentNode:
             self.wait_logged = now
             self.node.logger.warning("waiting %.0f s %s", now - self.wait_since, why)
 
+    def activate(self) -> None:
+        self.wait_since = None
+        self.active = True
+
+    def deactivate(self) -> None:
+        """Stop stepping; a running episode is abandoned (no further step of it is published)."""
+        self.active = False
+        if self.running:
+            self.running, self.stop_requested = False, False
+            self.node.logger.info("episode %d abandoned at step t=%d: the node was deactivated", self.episode,
+                                  int(self.record["t"]))
+
     def _tick(self) -> None:
         now = self.clock.now_ns()
-        if now is None or self.finished:
+        if now is None or self.finished or not self.active:
             return
         if not self.running:
             if not self.start_requested:
@@ -454,7 +471,7 @@ class RobotEnvironmentNode:
         self._publish_markers()
 
     def _watchdog(self) -> None:
-        if not self.running or self.pending_action is not None:
+        if not self.running or self.pending_action is not None or not self.active:
             return
         waited = time.monotonic() - self.published_at
         if waited >= self.params["action_timeout"]:
@@ -470,7 +487,8 @@ class RobotEnvironmentNode:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_node(lambda mw: RobotEnvironmentNode(mw), argv, (nav.NavConfigError,))
+    return run_node(lambda mw: RobotEnvironmentNode(mw), argv, (nav.NavConfigError,),
+                    managed_name="robot_environment")
 
 
 if __name__ == "__main__":

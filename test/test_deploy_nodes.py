@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from hdrqn_ros.graph import _command
-from hdrqn_ros.supervisor import ProcessSpec, Supervisor
+from hdrqn_ros.graph import NODE_MODULES
+from hdrqn_ros.supervisor import ProcessSpec, Supervisor, python_command
 from hdrqn_ros.training.export import export_policy
 
 from test_graph import ENV, domain, read_jsonl, wait_for  # noqa: F401  (domain: a fixture)
@@ -35,7 +35,8 @@ def exported(tmp_path_factory):
 
 
 def _spec(node: str, *params: str) -> ProcessSpec:
-    argv = _command(node) + ["--ros-args", "-p", f"algo:={ALGO}", "-p", f"env:={ENV}", "-p", "seed:=3"]
+    argv = python_command(NODE_MODULES[node]) + ["--ros-args", "-p", f"algo:={ALGO}", "-p", f"env:={ENV}",
+                                                 "-p", "seed:=3"]
     for param in params:
         argv += ["-p", param]
     return ProcessSpec(node, argv)

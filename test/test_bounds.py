@@ -35,7 +35,11 @@ def test_oversized_images_and_weights_are_dropped_without_growing_memory(domain,
         node = mw.create_node("flooder")
         obs_pub = node.create_publisher(wire.IMAGE, "/observation", wire.STEP_QOS)
         weights_pub = node.create_publisher(wire.BYTES, wire.WEIGHTS["sub"], LATCHED_QOS)
-        for pub in (obs_pub, weights_pub):
+        step_pub = node.create_publisher(wire.FLOATS, wire.ENV_STEP, wire.STEP_QOS)
+        answered: list[int] = []
+        node.create_subscription(wire.INTS, wire.ACTION, lambda m: answered.extend(
+            int(r["key"]) for r in wire.read_records(m, wire.ACTION_FIELDS, np.int64)), wire.STEP_QOS)
+        for pub in (obs_pub, weights_pub, step_pub):
             mw.spin(until=lambda: pub.get_subscription_count() > 0, timeout_s=60)
             assert pub.get_subscription_count(), "the sub-controller never subscribed"
         pid = sup.pids["sub"]
@@ -48,11 +52,22 @@ def test_oversized_images_and_weights_are_dropped_without_growing_memory(domain,
                 weights_pub.publish(wire.make_weights(node, big_weights, i))
                 mw.spin(timeout_s=0.05)
 
+        def taken_up_to(key: int) -> None:
+            """A valid step after the flood, on the same writers: once the sub-controller has
+            answered it, it has taken (and dropped) every sample before it. A loaded machine
+            delays that, and until then the samples wait in its DDS reader (up to the QoS depth)."""
+            obs_pub.publish(wire.make_image(node, key, np.zeros((44, 44, 3), np.uint8), "map"))
+            record = dict.fromkeys(wire.STEP_FIELDS, 0.0) | {"key": key}
+            step_pub.publish(wire.make_record(node, wire.FLOATS, wire.STEP_FIELDS, [record[f] for f in wire.STEP_FIELDS]))
+            mw.spin(until=lambda: key in answered, timeout_s=120)
+            assert key in answered, f"the sub-controller never answered step {key} after the flood"
+
         flood(10)  # warm-up: DDS buffers and the allocator settle
+        taken_up_to(1)
         wait_for(lambda: log.read_text().count("exceeds the") >= 2, 30, "the rejections to be logged", sup)
         before = rss_mib(pid)
         flood(60)  # 60 x (3 + 4) MiB = 420 MiB offered
-        mw.spin(timeout_s=2.0)
+        taken_up_to(2)
         after = rss_mib(pid)
         sup.poll()
         assert sup.returncodes["sub"] is None, "the sub-controller died"

@@ -4,6 +4,7 @@ Cyclone DDS (loopback only; no fake bus): every graph test runs on both backends
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -26,7 +27,7 @@ from hdrqn_ros.protocol.wire import obs_digest
 from hdrqn_ros.recording.bag import BagWriter
 from hdrqn_ros.recording.transitions import GROUP_TOPICS, episode_summary, read_episodes
 from hdrqn_ros.supervisor import ProcessSpec, Supervisor
-from hdrqn_ros.throttle import BURST
+from hdrqn_ros.throttle import BURST, THROTTLE_PERIOD_S
 
 from conftest import NO_RCLPY, probe_middleware
 
@@ -351,14 +352,18 @@ def test_sub_controller_drives_cmd_vel_from_a_costmap(domain, backend, tmp_path)
             header=wire.make_header(node, 5_000_000_000, "odom"),
             info=node.msg("nav_msgs/msg/MapMetaData")(resolution=0.05, width=60, height=60),
             data=node.pack(np.zeros(3600, np.int8)))
-        for _ in range(100):
+        mw.spin(until=lambda: pub.get_subscription_count() > 0, timeout_s=120)
+        sup.poll()
+        assert pub.get_subscription_count() > 0, f"the sub-controller never subscribed: {sup.returncodes}"
+        end = time.monotonic() + 120  # one costmap update per half second, as Nav2's local costmap publishes
+        while len(twists) < 2 and time.monotonic() < end:
             pub.publish(grid)
             mw.spin(until=lambda: len(twists) >= 2, timeout_s=0.5)
-            if len(twists) >= 2:
-                break
         assert len(twists) >= 2, "no cmd_vel from the costmap"
-        sup.stop()
-        mw.spin(timeout_s=1.0)
+        moving = len(twists)
+        sup.stop()  # SIGINT: the node publishes the zero command on its way out
+        mw.spin(until=lambda: len(twists) > moving and (twists[-1].linear.x, twists[-1].angular.z) == (0.0, 0.0),
+                timeout_s=30)
         last = twists[-1]
         assert (last.linear.x, last.angular.z) == (0.0, 0.0), "no stop command on shutdown"
     finally:
@@ -379,7 +384,9 @@ def test_late_joiner_sees_ros_discovery_info(domain, backend, tmp_path):
     sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=5)
     sup.start()
     try:
-        time.sleep(4.0)  # the nodes are up before we join
+        logs = [tmp_path / "logs" / f"{name}.log" for name in ("env", "critic")]
+        wait_for(lambda: all(log.exists() and "middleware" in log.read_text() for log in logs), 120,
+                 "both nodes up before we join", sup)
         mw = CycloneMiddleware([])
         try:
             info = message_class("rmw_dds_common/msg/ParticipantEntitiesInfo")
@@ -396,7 +403,7 @@ def test_late_joiner_sees_ros_discovery_info(domain, backend, tmp_path):
                 # (observation, subgoal_images, env_step, pose, clock), not the first sample
                 return {"/g7/environment", "/g7/critic"} <= set(seen) and seen["/g7/environment"] >= 5
 
-            wait_for(nodes, 30, "ros_discovery_info listing /g7/critic and /g7/environment with its 5 writers", sup)
+            wait_for(nodes, 120, "ros_discovery_info listing /g7/critic and /g7/environment with its 5 writers", sup)
         finally:
             mw.shutdown()
     finally:
@@ -423,20 +430,27 @@ def test_malformed_messages_are_rejected_and_logged(domain, backend, tmp_path):
         credit_pub = node.create_publisher(wire.FLOATS, "/learner_credit", LATCHED_QOS)
         obs_pub = node.create_publisher(wire.IMAGE, "/probe_obs")
         step_pub = node.create_publisher(wire.FLOATS, "/probe_step")
-        mw.spin(until=lambda: bool(steps), timeout_s=30)
+        mw.spin(until=lambda: bool(steps), timeout_s=120)
+        assert steps, "the environment never stepped"
         key = int(steps[0]["key"])
 
-        def sub_answers(k: int) -> bool:
+        def sub_answers(k: int, deadline_s: float) -> bool:
+            """Like the environment, send step ``k`` (again every 3 s) until the sub-controller answers it."""
+            end = time.monotonic() + deadline_s
             step = dict(steps[0], key=k)
-            obs_pub.publish(wire.make_image(node, k, np.zeros((44, 44, 3), np.uint8), "map"))
-            step_pub.publish(wire.make_record(node, wire.FLOATS, wire.STEP_FIELDS, [step[f] for f in wire.STEP_FIELDS]))
-            mw.spin(until=lambda: any(a["key"] == k for a in actions), timeout_s=3)
-            return any(a["key"] == k for a in actions)
+            while time.monotonic() < end:
+                obs_pub.publish(wire.make_image(node, k, np.zeros((44, 44, 3), np.uint8), "map"))
+                step_pub.publish(wire.make_record(node, wire.FLOATS, wire.STEP_FIELDS,
+                                                  [step[f] for f in wire.STEP_FIELDS]))
+                mw.spin(until=lambda: any(a["key"] == k for a in actions), timeout_s=3)
+                if any(a["key"] == k for a in actions):
+                    return True
+            return False
 
-        # like the environment, re-send the same step until it is answered (discovery takes a moment)
-        assert any(sub_answers(key + 1) for _ in range(20)), "the sub-controller never answered"
+        assert sub_answers(key + 1, 180), "the sub-controller never answered"  # it imports torch: slow under load
         for pub in (action_pub, credit_pub, obs_pub, step_pub):  # every reader has found our writers
-            mw.spin(until=lambda: pub.get_subscription_count() > 0, timeout_s=20)
+            mw.spin(until=lambda: pub.get_subscription_count() > 0, timeout_s=60)
+        flood_started = time.monotonic()
         action_pub.publish(wire.make_record(node, wire.INTS, wire.ACTION_FIELDS, [key, 99]))  # action out of range
         action_pub.publish(wire.make_record(node, wire.INTS, ("key",), [key]))  # too few values
         credit_pub.publish(wire.make_record(node, wire.FLOATS, wire.CREDIT_FIELDS, [np.nan, 0, 0, 0, 0]))  # NaN
@@ -454,12 +468,13 @@ def test_malformed_messages_are_rejected_and_logged(domain, backend, tmp_path):
                 mw.spin(timeout_s=0.01)
         mw.spin(timeout_s=1.0)
         action_pub.publish(wire.make_record(node, wire.INTS, wire.ACTION_FIELDS, [key, 1]))  # a good one: the env goes on
-        mw.spin(until=lambda: len({s["key"] for s in steps}) >= 2, timeout_s=10)
+        mw.spin(until=lambda: len({s["key"] for s in steps}) >= 2, timeout_s=60)
         assert len({s["key"] for s in steps}) >= 2, "the environment stopped stepping"
-        assert sub_answers(key + 30), "the sub-controller stopped answering after the bad messages"
+        assert sub_answers(key + 30, 60), "the sub-controller stopped answering after the bad messages"
     finally:
         mw.shutdown()
         codes = sup.stop()
+    flood_s = time.monotonic() - flood_started
     assert all(rc == 0 for rc in codes.values()), codes
     env_log = (tmp_path / "logs" / "env.log").read_text()
     sub_log = (tmp_path / "logs" / "sub.log").read_text()
@@ -468,7 +483,10 @@ def test_malformed_messages_are_rejected_and_logged(domain, backend, tmp_path):
     assert "Traceback" not in env_log + sub_log
     for log, topic in ((env_log, "/action"), (sub_log, "/probe_obs")):
         lines = [line for line in log.splitlines() if f"rejected a message on {topic}:" in line]
-        assert BURST <= len(lines) <= BURST + 3, f"{len(lines)} rejection lines for {topic} after a flood of {FLOOD}"
+        # the burst, then at most one line per throttle period while the flood was being read
+        most = BURST + 1 + math.ceil(flood_s / THROTTLE_PERIOD_S)
+        assert BURST <= len(lines) <= most, f"{len(lines)} rejection lines for {topic} after a flood of {FLOOD} " \
+                                            f"read in {flood_s:.0f} s (at most {most})"
 
 
 @NO_RCLPY

@@ -27,7 +27,7 @@ def rss_mib(pid: int) -> float:
 def test_oversized_images_and_weights_are_dropped_without_growing_memory(domain, backend, tmp_path):
     sub = ProcessSpec("sub", [sys.executable, "-c", "import sys; from hdrqn_ros.nodes.controllers import main_sub as m;"
                               " sys.exit(m())", "--ros-args", "-p", "algo:=dqn", "-p", f"max_message_bytes:={LIMIT}"])
-    sup = Supervisor([sub], log_dir=tmp_path / "logs", stop_timeout_s=5)
+    sup = Supervisor([sub], log_dir=tmp_path / "logs", stop_timeout_s=30)
     log = tmp_path / "logs" / "sub.log"
     sup.start()
     mw = probe_middleware(backend)

@@ -57,7 +57,7 @@ def run_graph(tmp_path: Path, acting: str, epsilon: str) -> dict:
     step_log = tmp_path / "env_steps.jsonl"
     specs = [_spec("environment", f"max_episodes:={EPISODES}", f"step_log:={step_log}", "wait_for_learner:=false"),
              _spec("critic")] + [_spec(node, acting, f"epsilon:={epsilon}") for node in CONTROLLERS]
-    sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=5)
+    sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=30)
     sup.start()
     procs = {}
     try:
@@ -137,7 +137,7 @@ def test_a_policy_that_does_not_fit_the_node_exits_2_naming_the_problem(domain, 
     for case, (node, params, _) in BAD_CASES.items():
         spec = _spec(node, *(p.format(**names) for p in params))
         specs.append(ProcessSpec(case, spec.argv))
-    sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=5)
+    sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=30)
     sup.start()
     try:
         wait_for(lambda: all(code is not None for code in sup.returncodes.values()), 120, "every node to exit", sup)

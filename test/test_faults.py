@@ -49,7 +49,7 @@ def test_kill_each_node_in_turn_loses_no_acknowledged_transition(domain, backend
         "learner": {"transition_log": str(tmp_path / "transitions.jsonl"), "record": str(bag), "weights_every": 5}})
     specs = graph_processes(cfg, params, 1, respawn=True)
     specs = [type(s)(s.name, s.argv, s.respawn, 0.2, s.required) for s in specs]  # quick respawns
-    sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=5)
+    sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=30)
     acked_per_life = defaultdict(int)  # learner life -> acknowledged steps last seen
     life, report = 0, {"kills": []}
     sup.start()

@@ -86,7 +86,7 @@ def start_graph(tmp_path: Path, algo: str = "hdrqn-v2", episodes: int = 8, respa
         "learner": {"transition_log": str(tmp_path / "transitions.jsonl"), "weights_every": 5, **(learner or {})},
         **nav})
     sup = Supervisor(graph_processes(cfg, params, 1, respawn=respawn, middleware=middleware), log_dir=tmp_path / "logs",
-                     stop_timeout_s=5)
+                     stop_timeout_s=30)
     sup.start()
     return sup
 
@@ -284,7 +284,7 @@ def test_learner_killed_and_restarted_resumes_aligned(domain, backend, tmp_path,
         wait_for(lambda: status.exists() and json.loads(status.read_text())["episodes"] >= 3, 120,
                  "3 episodes before the kill", sup)
         sup.kill("learner")
-        wait_for(lambda: sup.restarts["learner"] >= 1, 20, "the learner respawn", sup)
+        wait_for(lambda: sup.restarts["learner"] >= 1, 60, "the learner respawn", sup)
         wait_for(lambda: (tmp_path / "run" / "summary.json").exists(), 150, "the learner to finish", sup)
     finally:
         sup.stop()
@@ -340,7 +340,7 @@ def test_sub_controller_drives_cmd_vel_from_a_costmap(domain, backend, tmp_path)
                                "as m; sys.exit(m())", "--ros-args", "-p", "algo:=drqn", "-p", "epsilon:=0.0",
                                "-p", "observation_source:=costmap", "-p",
                                f"action_table:={CONFIG / 'nav2' / 'actions.yaml'}"])
-    sup = Supervisor([spec], log_dir=tmp_path / "logs", stop_timeout_s=5)
+    sup = Supervisor([spec], log_dir=tmp_path / "logs", stop_timeout_s=30)
     sup.start()
     mw = probe_middleware(backend)
     twists = []
@@ -381,7 +381,7 @@ def test_late_joiner_sees_ros_discovery_info(domain, backend, tmp_path):
 
     specs = [ProcessSpec(name, [sys.executable, "-m", f"hdrqn_ros.nodes.{module}", "--ros-args", "-r", "__ns:=/g7"])
              for name, module in (("env", "environment"), ("critic", "critic"))]
-    sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=5)
+    sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=30)
     sup.start()
     try:
         logs = [tmp_path / "logs" / f"{name}.log" for name in ("env", "critic")]
@@ -417,7 +417,7 @@ def test_malformed_messages_are_rejected_and_logged(domain, backend, tmp_path):
              ProcessSpec("sub", [sys.executable, "-c", "import sys; from hdrqn_ros.nodes.controllers import "
                                  "main_sub as m; sys.exit(m())", "--ros-args", "-p", "algo:=dqn",
                                  "-r", "observation:=/probe_obs", "-r", "env_step:=/probe_step"])]
-    sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=5)
+    sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=30)
     sup.start()
     mw = probe_middleware(backend)
     try:

@@ -35,6 +35,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -112,7 +113,8 @@ print(json.dumps({"stopped": stopped, "interfaces": stats}), flush=True)
 """
 
 NODE = r"""
-import json, sys
+import faulthandler, json, signal, sys
+faulthandler.register(signal.SIGUSR1)  # the test asks for every thread's stack when the node hangs
 import numpy as np
 from hdrqn_ros.middleware import open_middleware
 from hdrqn_ros.protocol import wire
@@ -267,8 +269,16 @@ def start_node(net: Netns, backend: str, domain_id: int, role: str, limit_s: flo
 
 
 def report(proc: subprocess.Popen, timeout: float) -> dict:
-    """The node's JSON line (after it exits); fails with its stderr if it did not exit cleanly."""
-    out, err = proc.communicate(timeout=timeout)
+    """The node's JSON line (after it exits); fails with its stderr if it did not exit cleanly,
+    or with its threads' stacks if it does not exit within ``timeout``."""
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(2.0)  # the stacks' dump is written (nothing to wait on: the node is stuck)
+        kill(proc)
+        out, err = proc.communicate()
+        raise AssertionError(f"node did not exit within {timeout} s; its stacks:\n{err[-6000:]}") from None
     assert proc.returncode == 0, f"node exited with {proc.returncode}:\n{err[-3000:]}"
     return json.loads(out.strip().splitlines()[-1])
 

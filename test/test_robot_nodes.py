@@ -100,7 +100,7 @@ def start(tmp_path: Path, checkpoint: Path, mode: str, episodes: int = EPISODES,
         extra = [f"{name}:={value}" for name, value in overrides.get(spec.name, {}).items()]
         specs.append(ProcessSpec(spec.name, spec.argv + [a for item in extra for a in ("-p", item)],
                                  required=spec.required))
-    sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=10)
+    sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=30)
     sup.start()
     return sup, log
 
@@ -374,7 +374,7 @@ def test_the_shipped_trained_policy_visits_the_goals_in_order(tmp_path, domain, 
     run = RobotRun(algo="hdrqn-v2", env=ENV, view="5", policy=str(SHIPPED), episodes=3, seed=0,
                    real_time_factor=40.0, episode_log=str(log))
     sup = Supervisor(robot_processes(run, write_params(run, tmp_path / "params.yaml"), hierarchical=True),
-                     log_dir=tmp_path / "logs", stop_timeout_s=10)
+                     log_dir=tmp_path / "logs", stop_timeout_s=30)
     sup.start()
     try:
         wait_for(lambda: sup.returncodes["robot_environment"] is not None, 240, "3 robot episodes", sup)

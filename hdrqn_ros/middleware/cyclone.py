@@ -148,6 +148,9 @@ class CycloneNode(Node):
     def resolve_topic(self, topic: str) -> str:
         return remap_and_resolve(self.middleware.ros_args, topic, self.namespace, self.name)
 
+    def wait_for_delivery(self, publisher: _Publisher, timeout_s: float) -> bool:
+        return publisher.writer.wait_for_acks(duration(seconds=timeout_s))
+
     def create_publisher(self, type_name: str, topic: str, qos: QoS = DEFAULT_QOS) -> _Publisher:
         cls = message_class(type_name)
         name = self.resolve_topic(topic)

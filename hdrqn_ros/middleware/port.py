@@ -173,6 +173,12 @@ class Node(ABC):
         rule), then ``apply(name, value)`` is called. The Cyclone backend has no parameter
         services: nothing to do there."""
 
+    @abstractmethod
+    def wait_for_delivery(self, publisher: Publisher, timeout_s: float) -> bool:
+        """Block until every matched subscription has acknowledged what ``publisher`` sent
+        (reliable QoS), at most ``timeout_s``: whether they all did. For a last message
+        before the process exits (the zero velocity command)."""
+
     def release(self) -> None:
         """Destroy every publisher, subscription, timer, service and parameter callback made
         so far (a managed node's cleanup); declared parameters stay, with their values."""

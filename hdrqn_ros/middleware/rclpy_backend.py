@@ -25,6 +25,7 @@ try:
     import rclpy.node
     from rclpy.clock import Clock, ClockType
     from rclpy.context import Context
+    from rclpy.duration import Duration
     from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
     from rclpy.exceptions import InvalidParameterTypeException
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -212,6 +213,9 @@ class RclpyNode(Node):
     def create_publisher(self, type_name: str, topic: str, qos: QoS = DEFAULT_QOS) -> Publisher:
         return self._own(self._node.destroy_publisher,
                          self._node.create_publisher(self.msg(type_name), topic, _qos_profile(qos)))
+
+    def wait_for_delivery(self, publisher: Publisher, timeout_s: float) -> bool:
+        return publisher.wait_for_all_acked(Duration(nanoseconds=int(timeout_s * 1e9)))
 
     def create_subscription(self, type_name: str, topic: str, callback: Callable[[Any], None],
                             qos: QoS = DEFAULT_QOS, raw: bool = False) -> Any:

@@ -385,9 +385,12 @@ class SubControllerNode(_Controller):
         self.close()
 
     def close(self) -> None:
-        """Stop the robot: a zero velocity command."""
+        """Stop the robot: a zero velocity command, delivered before the node goes (at most 2 s)."""
         if self.pub_cmd is not None:
             self.pub_cmd.publish(self._command(None))
+            if not self.node.wait_for_delivery(self.pub_cmd, 2.0):
+                self.node.logger.warning("the zero command on %s was not acknowledged by every subscriber within 2 s",
+                                         self.node.resolve_topic(self.params["cmd_vel_topic"]))
 
 
 class MetaControllerNode(_Controller):

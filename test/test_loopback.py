@@ -228,7 +228,7 @@ def kill(proc: subprocess.Popen) -> None:
 class Capture:
     """The AF_PACKET helper in the namespace: started before the nodes, stopped after them."""
 
-    def __init__(self, net: Netns, interfaces: list[str], limit_s: float = 120.0):
+    def __init__(self, net: Netns, interfaces: list[str], limit_s: float = 400.0):
         self.proc = subprocess.Popen(net.exec_argv(sys.executable, "-c", CAPTURE, ",".join(interfaces), str(limit_s)),
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         line = self.proc.stdout.readline()
@@ -286,7 +286,7 @@ def report(proc: subprocess.Popen, timeout: float) -> dict:
 def stop_talker(proc: subprocess.Popen) -> dict:
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
-    return report(proc, timeout=15)
+    return report(proc, timeout=60)
 
 
 def needs(*backends: str):
@@ -306,9 +306,11 @@ def test_nodes_talk_over_loopback_only(netns, domain, talker_backend, listener_b
     capture = Capture(netns, [netns.ifname, "lo"])
     listener = talker = None
     try:
-        listener = start_node(netns, listener_backend, domain, "listener", 30.0)
-        talker = start_node(netns, talker_backend, domain, "talker", 40.0)
-        heard = report(listener, timeout=35)
+        # deadlines for a loaded machine: the listener stops as soon as it has its images, the
+        # talker when the test stops it
+        listener = start_node(netns, listener_backend, domain, "listener", 120.0)
+        talker = start_node(netns, talker_backend, domain, "talker", 180.0)
+        heard = report(listener, timeout=150)
         said = stop_talker(talker)
     finally:
         for proc in (listener, talker):
@@ -338,7 +340,7 @@ def test_control_talker_on_interface_is_captured(netns, domain, backend):
     talker = None
     try:
         talker = start_node(netns, backend, domain, "talker", 2.5, "-p", f"dds_interface:={netns.ifname}")
-        said = report(talker, timeout=30)
+        said = report(talker, timeout=120)
     finally:
         if talker is not None:
             kill(talker)

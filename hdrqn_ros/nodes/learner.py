@@ -27,6 +27,7 @@ from hdrqn_ros.agents.weights import encode_weights
 from hdrqn_ros.config import ConfigError, build_config, parse_set
 from hdrqn_ros.middleware import LATCHED_QOS, Middleware, ParameterRule
 from hdrqn_ros.protocol import wire
+from hdrqn_ros.protocol.follower import LOST_AFTER_S
 from hdrqn_ros.protocol.group import GroupAssembler
 from hdrqn_ros.recording.bag import BagError
 from hdrqn_ros.recording.received import GraphRecorder, earlier_recordings
@@ -38,7 +39,7 @@ from hdrqn_ros.training.learner import Learner
 PARAMETERS = {**ENV_DEFAULTS, "config": "", "overrides": [""], "episodes": 1000, "run_dir": "runs/graph",
               "groups": ["/"], "resume": False, "weights_every": 100, "credit_window": 20, "max_owed_updates": 8,
               "status_period": 1.0, "evaluate": True, "transition_log": "", "record": "", "record_split_mb": 256.0,
-              "bags": [""], "offline_updates": 0}
+              "bags": [""], "offline_updates": 0, "lost_after_s": LOST_AFTER_S}
 """``config``: a training config YAML (``hdrqn train --config``); ``overrides``:
 ``key=value`` items like ``hdrqn train --set``; the parameters ``algo``, ``env``, ``view``,
 ``seed``, ``episodes`` win over both. ``resume``: continue from ``run_dir``'s checkpoint
@@ -54,7 +55,10 @@ loses no acknowledged transition.
 ``bags``: fill the replay from these bags before training (not counted as this run's
 episodes), then run ``offline_updates`` updates on them before taking the graph's data.
 With no groups (``groups: [""]``) the learner trains offline only: ``offline_updates``
-(default 10 per ``update_every`` recorded steps), then evaluates and finishes."""
+(default 10 per ``update_every`` recorded steps), then evaluates and finishes.
+``lost_after_s``: a step whose messages have not all come is given up as lost once a later
+step of its environment has been complete this long (DDS repairs a reliable sample within a
+few heartbeats; raise it where links or machines are slow)."""
 RULES = {
     **ENV_RULES,
     "config": ParameterRule("training config YAML (hdrqn train --config)"),
@@ -73,6 +77,8 @@ RULES = {
     "record_split_mb": ParameterRule("split the recording every this many MB", positive=True),
     "bags": ParameterRule("fill the replay from these bags before training"),
     "offline_updates": ParameterRule("updates on the bags before taking the graph's data", low=0, high=10**9),
+    "lost_after_s": ParameterRule("seconds a later step is complete before a step missing messages is given up",
+                                  positive=True),
 }
 """Descriptions of :data:`PARAMETERS`: all read-only (a learner's settings are its run's)."""
 
@@ -127,8 +133,8 @@ class LearnerNode:
             self.offline_updates = max(1, 10 * self.prefilled[1] // cfg.update_every)
         self.recorder = (GraphRecorder(node, params["record"], cfg, params["record_split_mb"])
                          if params["record"] else None)
-        self.groups = [GroupAssembler(node, ns, self.learner, self.episodes, self.transition_log, self.recorder)
-                       for ns in namespaces]
+        self.groups = [GroupAssembler(node, ns, self.learner, self.episodes, self.transition_log, self.recorder,
+                                      params["lost_after_s"]) for ns in namespaces]
         self.weight_pubs = {c.name: node.create_publisher(wire.BYTES, wire.WEIGHTS[c.name], LATCHED_QOS)
                             for c in self.learner.agent.controllers}
         self.status_pub = node.create_publisher(wire.STRING, wire.STATUS, LATCHED_QOS)

@@ -22,7 +22,7 @@ from hdrqn_ros.config import TrainConfig, batch_class
 from hdrqn_ros.critic import sub_controller_terminal
 from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.protocol import wire
-from hdrqn_ros.protocol.follower import Decoder, StepFollower, done
+from hdrqn_ros.protocol.follower import LOST_AFTER_S, Decoder, StepFollower, done
 from hdrqn_ros.training.episodes import EpisodeBuilder, FinishedEpisode
 
 
@@ -57,8 +57,11 @@ class TransitionAssembler(Decoder):
     height), and each environment's records go to its own :class:`EnvAssembler`."""
 
     def __init__(self, namespace: str, cfg: TrainConfig, num_subgoals: int,
-                 on_episode: Callable[[FinishedEpisode], None], node=None, logger=None, log=None):
+                 on_episode: Callable[[FinishedEpisode], None], node=None, logger=None, log=None,
+                 lost_after_s: float = LOST_AFTER_S):
+        """``lost_after_s``: each environment's :attr:`StepFollower.lost_after_s`."""
         self.node = node
+        self.lost_after_s = lost_after_s
         self.logger = logger if logger is not None else node.logger
         self.ns = namespace.rstrip("/")
         self.cfg, self.num_subgoals, self.on_episode, self.log = cfg, num_subgoals, on_episode, log
@@ -90,6 +93,8 @@ class TransitionAssembler(Decoder):
         """The group's assemblers, made for ``n`` environments if there are none yet."""
         if not self.envs:
             self.envs = [EnvAssembler(self, i) for i in range(n)]
+            for env in self.envs:
+                env.lost_after_s = self.lost_after_s
         elif n != len(self.envs):
             raise wire.ProtocolError(f"{topic} holds {n} environment(s)' data, the group's messages so far "
                                      f"{len(self.envs)}")

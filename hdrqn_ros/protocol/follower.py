@@ -99,6 +99,8 @@ class StepFollower(Decoder):
     skip_stale = True
     """Drop queued steps older than a step that is ready (the loop went on without them:
     their inputs were lost). The learner keeps them (an episode needs every step)."""
+    lost_after_s = LOST_AFTER_S
+    """A follower that keeps stale steps gives one up once a later step was complete this long."""
 
     def __init__(self, node=None, capacity: int = DEFAULT_CAPACITY, logger=None, num_envs: int | None = None):
         """``node``: the middleware node (logger, topic names, a stall-report timer); without
@@ -184,7 +186,7 @@ class StepFollower(Decoder):
     def check_stall(self, now: float | None = None, report: bool = True) -> None:
         """Called every second: report a step waiting at the head (every
         :data:`STALL_REPORT_S`, unless not ``report``), and in a follower that keeps stale
-        steps, give up on it once a later step has been complete for :data:`LOST_AFTER_S`
+        steps, give up on it once a later step has been complete for ``lost_after_s``
         (``now``: monotonic s, or a recording's clock)."""
         now = time.monotonic() if now is None else now
         if not self.queue or self.ready(self.queue[0]):
@@ -205,13 +207,13 @@ class StepFollower(Decoder):
             self._complete_since = None
         elif self._complete_since is None:
             self._complete_since = now
-        elif now - self._complete_since >= LOST_AFTER_S:
-            self._give_up(complete, f"while a later step was complete for {LOST_AFTER_S:.0f} s")
+        elif now - self._complete_since >= self.lost_after_s:
+            self._give_up(complete, f"while a later step was complete for {self.lost_after_s:.0f} s")
 
     def give_up_waiting(self) -> None:
         """The end of a recording: give up every step that keeps a later complete one
         waiting (no input can come any more; a running learner would have after
-        :data:`LOST_AFTER_S`)."""
+        ``lost_after_s``)."""
         while complete := self._first_complete_behind_head():
             self._give_up(complete, "before the recording ends")
 

@@ -10,7 +10,7 @@ from typing import Protocol
 from hdrqn_ros.middleware.port import LATCHED_QOS
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.assembly import TransitionAssembler
-from hdrqn_ros.protocol.follower import DEFAULT_CAPACITY
+from hdrqn_ros.protocol.follower import DEFAULT_CAPACITY, LOST_AFTER_S
 from hdrqn_ros.training.episodes import FinishedEpisode
 from hdrqn_ros.training.learner import Learner
 
@@ -37,8 +37,9 @@ class GroupAssembler(TransitionAssembler):
     Finished episodes go to ``episodes`` (the training thread stores them in replay)."""
 
     def __init__(self, node, namespace: str, learner: Learner, episodes: queue.Queue, log=None,
-                 recorder: Recorder | None = None):
-        super().__init__(namespace, learner.cfg, learner.agent.num_subgoals, self._acknowledge, node=node, log=log)
+                 recorder: Recorder | None = None, lost_after_s: float = LOST_AFTER_S):
+        super().__init__(namespace, learner.cfg, learner.agent.num_subgoals, self._acknowledge, node=node, log=log,
+                         lost_after_s=lost_after_s)
         self.episodes, self.graph_recorder = episodes, recorder
         self.acked_episodes = self.acked_steps = 0
         self.first_step: list[dict] | None = None  # the first step heard from the group (its records)

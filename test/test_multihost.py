@@ -245,6 +245,7 @@ def start_multihost_graph(tmp_path: Path, net: LoopbackHosts, lost_after_s: floa
     return sup
 
 
+@pytest.mark.flaky(reruns=1)  # timing-sensitive by nature: a link cut of a fixed length against DDS's lease
 @pytest.mark.parametrize("cut_s", [WITHIN_LEASE_S, BEYOND_LEASE_S], ids=["within-lease", "beyond-lease"])
 def test_actor_group_cut_off_and_restored_rejoins(domain, backend, hosts, tmp_path, cut_s):
     """Group0 (host a) and group1 (host b) feed the learner; host a's link goes down for

@@ -115,6 +115,9 @@ print(json.dumps({"stopped": stopped, "interfaces": stats}), flush=True)
 NODE = r"""
 import faulthandler, json, signal, sys
 faulthandler.register(signal.SIGUSR1)  # the test asks for every thread's stack when the node hangs
+# Ctrl-C stops the talker, even where the test runs with SIGINT ignored (a background job of a
+# non-interactive shell), which Python would otherwise keep
+signal.signal(signal.SIGINT, signal.default_int_handler)
 import numpy as np
 from hdrqn_ros.middleware import open_middleware
 from hdrqn_ros.protocol import wire

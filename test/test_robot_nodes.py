@@ -152,10 +152,19 @@ def test_sub_drives_the_simulators_episodes_with_one_cmd_vel_per_step(tmp_path, 
 
 
 @NO_RCLPY
-def test_meta_only_sends_one_goal_pose_per_option_and_no_cmd_vel(tmp_path, checkpoint, domain, monkeypatch):
+@pytest.mark.parametrize("cut_short", [False, True], ids=["navigator-arrives", "options-time-out"])
+def test_meta_only_sends_one_goal_pose_per_option_and_no_cmd_vel(tmp_path, checkpoint, domain, monkeypatch,
+                                                                 cut_short):
+    """``options-time-out``: a navigator too slow to get anywhere and an ``option_timeout``
+    below the step period: every option ends at its next step, away from the places. hDRQNv2's
+    meta-controller then needs the sub-controller's LSTM state for a step that is no decision
+    point; before, it waited for it for ever (the robot stood still, seen once in a stress run
+    where a loaded start-up let the clock run free past the 12 s timeout)."""
     monkeypatch.setenv("HDRQN_MIDDLEWARE", "rclpy")
     probe = Probe("rclpy")
-    sup, log = start(tmp_path, checkpoint, "meta-only", critic={"option_timeout": 12.0})
+    slow = {"critic": {"option_timeout": 1.0}, "loopback_robot": {"nav_speed": 0.01}} if cut_short else \
+        {"critic": {"option_timeout": 12.0}}
+    sup, log = start(tmp_path, checkpoint, "meta-only", **slow)
     try:
         probe.until(finished(sup), 240, f"{EPISODES} robot episodes", sup)
         probe.until(lambda: len(probe.goal_poses) == probe.new_options, 30, "a goal_pose for every option", sup)
@@ -165,7 +174,13 @@ def test_meta_only_sends_one_goal_pose_per_option_and_no_cmd_vel(tmp_path, check
     assert codes["robot_environment"] == 0, codes
     assert probe.new_options >= EPISODES and len(probe.goal_poses) == probe.new_options
     assert probe.cmd_vel == []
-    assert any(r["visits"] for r in read_jsonl(log)), "the navigator reached the places chosen"
+    episodes = read_jsonl(log)
+    if cut_short:
+        # the robot hardly moves, so the episodes run to the step limit through options that time out
+        assert [e["steps"] for e in episodes] == [50] * EPISODES, episodes
+        assert probe.new_options > EPISODES + sum(len(e["visits"]) for e in episodes), (probe.new_options, episodes)
+    else:
+        assert any(e["visits"] for e in episodes), "the navigator reached the places chosen"
 
 
 @NO_RCLPY

@@ -244,6 +244,7 @@ class SubControllerNode(_Controller):
         else:
             node.create_subscription(wire.IMAGE, wire.OBSERVATION, self._on_observation, wire.STEP_QOS)
         self.acted_key = 0  # the last step key this node chose an action for
+        self.state_sent_key = -1  # the last acted_key whose LSTM state went to the meta-controller
         if self.spec.hierarchical:
             if source == "costmap":
                 self.expect(wire.SUBGOAL, "the meta_controller")
@@ -329,12 +330,31 @@ class SubControllerNode(_Controller):
             self.pub_cmd.publish(self._command(action, key))
 
     def received(self, rows: list[dict]) -> None:
-        """hDRQNv2: where an option may end, hand the meta-controller our LSTM state after the
-        previous action (its input), before the critic has even decided."""
-        may_end = any(row["t"] > 0 and (row["decision_point"] or done(row)) and int(row["prev_key"]) == self.acted_key
-                      for row in rows)
-        if self.pub_state is not None and may_end:
+        """hDRQNv2: where an option may end (a decision point, the episode's end), hand the
+        meta-controller our LSTM state after the previous action (its input) before the
+        critic has even decided; again for a repeated step."""
+        self._hand_over_state(rows, again=True)
+
+    def pump(self) -> None:
+        """Then, for the step now waiting: the critic may end an option where no decision point
+        is (its ``option_timeout``): hand the state over for it too, once."""
+        super().pump()
+        if self.queue:
+            self._hand_over_state(self.queue[0], again=False)
+
+    def _hand_over_state(self, rows: list[dict], again: bool) -> None:
+        """Publish ``sub_state`` for our last action if an option may end at the step after it
+        (``rows``): a decision point, the episode's end, or the critic's ``option_done``. Not
+        ``again``: only if not yet published for that action."""
+        if self.pub_state is None or (not again and self.state_sent_key == self.acted_key):
+            return
+        critic = self.inbox.get(wire.CRITIC, int(rows[0]["key"]))
+        may_end = any(row["t"] > 0 and int(row["prev_key"]) == self.acted_key and
+                      (row["decision_point"] or done(row) or (critic is not None and critic[i]["option_done"]))
+                      for i, row in enumerate(rows))
+        if may_end:
             self.pub_state.publish(wire.make_states(self.node, self.acted_key, self.policy.sub_end_state()))
+            self.state_sent_key = self.acted_key
 
     def ready(self, rows: list[dict]) -> bool:
         key = int(rows[0]["key"])

@@ -25,7 +25,9 @@ from hdrqn_ros.protocol.follower import StepFollower, done
 PARAMETERS = {**ENV_DEFAULTS, "num_envs": 1, "option_timeout": 0.0}
 """What the critic declares: the environment's settings, the group's batch size and
 ``option_timeout``: an option not done this many seconds (of step keys, i.e. ROS time on a
-robot) after it started ends there (0: never; a robot whose navigator cannot reach a place)."""
+robot) after it started ends there (0: never; a robot whose navigator cannot reach a place).
+A robot setting: the simulator's ``environment`` node sends ``subgoal_images`` only at
+decision points, which an option cut short elsewhere would wait for."""
 
 RULES = {**ENV_RULES, "option_timeout": ParameterRule(
     "seconds (of step keys) after which an option not yet done ends without reward (0: never)", live=True, low=0.0,

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hdrqn_ros.middleware import LATCHED_QOS, open_middleware
+from hdrqn_ros.middleware import LATCHED_QOS, QoS, open_middleware
 from hdrqn_ros.nodes import nav
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.robot_graph import RobotRun, robot_processes, write_params
@@ -63,10 +63,13 @@ class Probe:
             {s.name: s for s in m.status}))
         node.create_subscription("visualization_msgs/msg/MarkerArray", "/subgoal_markers",
                                  lambda m: setattr(self, "markers", m))
+        # the probe counts every command: a history deep enough for a test thread that falls
+        # behind on a loaded machine (ROS's default 10 lost 4 of 150 in a stress run)
+        counted = QoS(depth=1000)
         node.create_subscription(nav.TWIST, "/cmd_vel", lambda m: self.cmd_vel.append(
-            (m.linear.x, m.linear.y, m.angular.z)))
+            (m.linear.x, m.linear.y, m.angular.z)), counted)
         node.create_subscription(nav.POSE_STAMPED, "/goal_pose", lambda m: self.goal_poses.append(
-            (m.pose.position.x, m.pose.position.y)))
+            (m.pose.position.x, m.pose.position.y)), counted)
         node.create_subscription(nav.POSE_TYPES["odometry"], "/odom", lambda m: self.odom_twist.append(
             (m.twist.twist.linear.x, m.twist.twist.linear.y, m.twist.twist.angular.z)))
         node.create_subscription(wire.INTS, "/subgoal", self._on_subgoal, wire.STEP_QOS)

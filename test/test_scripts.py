@@ -138,3 +138,6 @@ def test_goal_sightings_refuse_a_non_grid_checkpoint(tmp_path):
     run = subprocess.run([sys.executable, str(ROOT / "scripts" / "goal_sightings"), str(ckpt)],
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 2 and "the sightings are for the gridworld domains" in run.stderr
+    bad = subprocess.run([sys.executable, str(ROOT / "scripts" / "goal_sightings"), str(ckpt), "--epsilon", "1.5"],
+                         capture_output=True, text=True, timeout=300)
+    assert bad.returncode == 2 and "--epsilon must be in [0, 1], got 1.5" in bad.stderr

@@ -9,6 +9,23 @@ from hdrqn_ros.middleware.rclpy_backend import rclpy_available
 NO_RCLPY = pytest.mark.skipif(not rclpy_available(), reason="rclpy (the ROS 2 Jazzy wheels, extra [ros]) is not "
                                                             "installed: scripts/install installs it on Linux x86-64")
 BACKEND_PARAMS = [pytest.param("rclpy", marks=NO_RCLPY), "cyclone"]
+PROCESS_MODULES = {"test_graph", "test_faults", "test_multihost", "test_player", "test_bag", "test_robot_nodes",
+                   "test_managed_nodes", "test_deploy_nodes", "test_loopback", "test_ros_tooling", "test_bounds",
+                   "test_untrusted_data"}
+"""Modules whose tests start node processes or join DDS (each on a domain of its own): marked
+``processes``. ``scripts/test`` runs them one at a time in one pytest while a second pytest
+runs every other test beside it (the load of one busy core, which ``scripts/stress`` shows
+they stand, repeating ``-m processes``)."""
+
+
+def pytest_collection_modifyitems(items):
+    for item in items:
+        module = getattr(item.module, "__name__", None)
+        if module in PROCESS_MODULES:
+            item.add_marker(pytest.mark.processes)
+        elif {"backend", "domain"} & set(getattr(item, "fixturenames", ())):
+            raise pytest.UsageError(f"{item.nodeid} starts node processes: add {module} to PROCESS_MODULES in "
+                                    "test/conftest.py, so that it never runs beside another such test")
 
 
 @pytest.fixture(scope="session", autouse=True)

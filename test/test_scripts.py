@@ -1,5 +1,6 @@
 """The developer scripts: `scripts/stress` tallies real pytest runs (passes, failures with their
-output, retries), `scripts/goal_sightings` follows the second goal after the first."""
+output, retries), `scripts/goal_sightings` follows the second goal after the first; and the
+`processes` marker by which `scripts/test` keeps node-starting tests one at a time."""
 import json
 import os
 import subprocess
@@ -74,6 +75,24 @@ def test_stress_refuses_bad_arguments(tmp_path):
     assert bad.returncode == 2 and "--runs must be >= 1" in bad.stderr
     both = _stress(tmp_path, "--no-hog", "--hog-elsewhere")
     assert both.returncode == 2 and "not allowed with" in both.stderr
+
+
+def test_a_module_that_starts_nodes_must_be_listed_to_run_one_at_a_time(tmp_path):
+    (tmp_path / "test").mkdir()
+    for name in ("setup.cfg", "test/conftest.py"):
+        (tmp_path / name).write_text((ROOT / name).read_text())
+    (tmp_path / "test" / "test_graph.py").write_text("def test_listed(backend):\n    pass\n")
+
+    def collect():
+        return subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider", "-m",
+                               "processes", "test"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+
+    listed = collect()
+    assert listed.returncode == 0 and "test_listed[cyclone]" in listed.stdout, listed.stdout + listed.stderr
+    (tmp_path / "test" / "test_new_nodes.py").write_text("def test_unlisted(backend):\n    pass\n")
+    unlisted = collect()
+    assert unlisted.returncode == 4, unlisted.stdout + unlisted.stderr  # a usage error: nothing runs
+    assert "add test_new_nodes to PROCESS_MODULES" in unlisted.stdout + unlisted.stderr
 
 
 def _step(green_in_view: bool, at: int = NO_SUBGOAL, done: bool = False) -> SimpleNamespace:

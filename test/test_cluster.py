@@ -277,8 +277,9 @@ def test_without_ray_the_error_names_the_extra(monkeypatch):
 
 
 DRIVER = """
-import sys
+import signal, sys
 from pathlib import Path
+signal.signal(signal.SIGINT, signal.default_int_handler)  # also when started with SIGINT ignored (a background job)
 from hdrqn_ros.cluster import run_experiment_on_ray
 from hdrqn_ros.experiments import EXPERIMENTS
 exp = EXPERIMENTS["exp3-gridworld-2goals"]

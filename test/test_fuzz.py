@@ -403,6 +403,24 @@ def test_the_learner_holds_a_first_step_only_with_the_controllers_answers():
     assert held == [False, False, False, False, False, True]
 
 
+def test_the_learner_holds_a_first_step_only_with_the_critics_answer():
+    """The critic answers every step, the first too: a learner whose ``/critic``
+    subscription matched late holds no first step, so it grants no credit ahead until the
+    environment re-publishes the step and the critic its answer (a stress run saw the
+    learner lose the first episodes of a batched group this way)."""
+    asm = TransitionAssembler("/", CFG, NUM_SUBGOALS, [].append, logger=LOG)
+    handlers, first = asm.inputs(), None
+    for topic, msg in group_stream(VALID_EPISODES)[:6]:
+        if topic != wire.CRITIC:
+            handlers[topic][1](msg)
+            first = first or wire.read_steps(msg)
+        else:
+            critic = msg
+    assert not asm.holds_answers(first)
+    handlers[wire.CRITIC][1](critic)  # the critic's answer, re-published
+    assert asm.holds_answers(first)
+
+
 def test_a_late_input_is_waited_for_and_a_lost_one_given_up_after_a_later_step_is_complete():
     """DDS repairs a lost sample of one topic while the others flow on: the learner keeps
     the later steps queued until the late sample comes. One that never comes is given up

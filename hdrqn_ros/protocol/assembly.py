@@ -189,7 +189,7 @@ class TransitionAssembler(Decoder):
         return None if not done_at or None in done_at else min(done_at)
 
     def holds_answers(self, rows: list[dict]) -> bool:
-        """Whether the assemblers hold a step's observations and the controllers' answers to
+        """Whether the assemblers hold a step's observations and the other nodes' answers to
         it (:meth:`EnvAssembler.holds_answers`, for every environment of ``rows``)."""
         return len(rows) == len(self.envs) and all(env.holds_answers(row) for env, row in zip(self.envs, rows))
 
@@ -244,9 +244,12 @@ class EnvAssembler(StepFollower):
         return self.group.topic(name)
 
     def holds_answers(self, step: dict) -> bool:
-        """Whether the inbox holds ``step``'s observation and the controllers' answers to it:
-        its action and, at an episode's first step, its subgoal and subgoal images."""
+        """Whether the inbox holds ``step``'s observation and the other nodes' answers to it:
+        in a hierarchical group the critic's (it answers every step), its action and, at an
+        episode's first step, its subgoal and subgoal images."""
         key, box = int(step["key"]), self.inbox
+        if self.spec.hierarchical and not box.has(wire.CRITIC, key):
+            return False
         if done(step):
             return box.has(wire.OBSERVATION, key)
         if not (box.has(wire.OBSERVATION, key) and box.has(wire.ACTION, key)):

@@ -76,8 +76,9 @@ class GroupAssembler(TransitionAssembler):
         """Publish ``learner_credit`` when the credit or the epsilons changed (or ``force``).
 
         No credit ahead before the learner holds the group's first heard step together with
-        the controllers' answers to it: a subscription matched late (discovery is per topic)
-        would miss them, and the env would run on while every later step waits for them.
+        the other nodes' answers to it (critic, action, subgoal): a subscription matched late
+        (discovery is per topic) would miss them, and the env would run on while every later
+        step waits for them.
         Without credit the env re-publishes its step after ``action_timeout`` and the
         controllers their answers, which the late subscription then gets.
 

@@ -281,8 +281,9 @@ def test_learner_killed_and_restarted_resumes_aligned(domain, backend, tmp_path,
     sup = start_graph(tmp_path, episodes=10, respawn=True, num_envs=num_envs)
     status = tmp_path / "run" / "status.json"
     try:
-        wait_for(lambda: status.exists() and json.loads(status.read_text())["episodes"] >= 3, 120,
-                 "3 episodes before the kill", sup)
+        checkpoint = tmp_path / "run" / "checkpoints" / "last.pt"  # written atomically, after the count goes up
+        wait_for(lambda: status.exists() and json.loads(status.read_text())["episodes"] >= 3 and checkpoint.exists(),
+                 120, "3 episodes and a checkpoint before the kill", sup)
         sup.kill("learner")
         wait_for(lambda: sup.restarts["learner"] >= 1, 60, "the learner respawn", sup)
         wait_for(lambda: (tmp_path / "run" / "summary.json").exists(), 150, "the learner to finish", sup)

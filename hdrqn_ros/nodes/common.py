@@ -4,6 +4,8 @@ Imports no torch (nor onnxruntime): the controllers' torch and ONNX acting netwo
 imported when :func:`make_acting_network` builds one."""
 from __future__ import annotations
 
+import ctypes
+import os
 import signal
 import sys
 import threading
@@ -143,8 +145,31 @@ STARTUP_ERRORS = (NodeConfigError, ParameterError, RosArgsError, BackendError, P
 so that a node imports only what it uses: the environment and critic stay small)."""
 
 
+LARGE_BUFFER_BYTES = 256 * 1024
+"""Allocations of this size or more get memory maps of their own in a node process (see
+:func:`return_large_buffers_to_the_os`)."""
+
+
+def return_large_buffers_to_the_os() -> None:
+    """Have glibc serve every allocation of :data:`LARGE_BUFFER_BYTES` or more (a sample of MiBs,
+    oversized or not, and its copies) from a memory map of its own, unmapped when freed.
+
+    glibc's default raises that threshold to the size of the first such buffer freed, after which
+    big buffers come from the heap and a burst of them (a flood of oversized samples, taken 64 at
+    a time) can leave tens of MiB in the heap for the rest of the process: test_bounds measured
+    +44 MiB once under load. A user's ``MALLOC_MMAP_THRESHOLD_`` wins; off glibc this does nothing.
+    Not for the learner: its per-update tensors are big and short-lived, and the heap serves them
+    faster than fresh maps."""
+    if "MALLOC_MMAP_THRESHOLD_" in os.environ:
+        return
+    mallopt = getattr(ctypes.CDLL(None), "mallopt", None)
+    if mallopt is not None and sys.platform.startswith("linux"):
+        mallopt(-3, LARGE_BUFFER_BYTES)  # -3: M_MMAP_THRESHOLD
+
+
 def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None,
-             input_errors: tuple[type[Exception], ...] = (), managed_name: str | None = None) -> int:
+             input_errors: tuple[type[Exception], ...] = (), managed_name: str | None = None,
+             large_buffers_to_os: bool = True) -> int:
     """Open the middleware, build the node object, spin until it finishes, Ctrl-C or
     SIGTERM, then clean up (the object's ``close()`` first, then the middleware).
 
@@ -152,9 +177,13 @@ def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None,
     executable's arguments it starts unconfigured and lifecycle transitions build, start
     and stop it (:mod:`hdrqn_ros.nodes.managed`).
 
+    ``large_buffers_to_os``: :func:`return_large_buffers_to_the_os` first (every node but the learner).
+
     SIGINT (Ctrl-C, what ``ros2 launch`` sends) and SIGTERM are a normal stop: exit code
     the object's ``exit_code`` (0). 2 for bad parameters, arguments, checkpoints, policies or bags:
     :data:`STARTUP_ERRORS` and the node's ``input_errors``."""
+    if large_buffers_to_os:
+        return_large_buffers_to_the_os()
     argv = list(sys.argv if argv is None else argv)
     managed = MANAGED_FLAG in split_ros_args(argv)[0][1:]
     if managed and managed_name is None:

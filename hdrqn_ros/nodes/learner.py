@@ -262,7 +262,8 @@ class LearnerNode:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_node(lambda mw: LearnerNode(mw), argv, (ConfigError, BagError, CheckpointError))
+    return run_node(lambda mw: LearnerNode(mw), argv, (ConfigError, BagError, CheckpointError),
+                    large_buffers_to_os=False)
 
 
 if __name__ == "__main__":

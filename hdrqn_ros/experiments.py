@@ -203,6 +203,10 @@ def set_aside(run_dir: Path) -> Path | None:
     return folder
 
 
+INTERRUPTED = 130
+"""``hdrqn train``'s exit code when Ctrl-C or SIGTERM stopped it (after its checkpoint)."""
+
+
 def run_experiment(exp: Experiment, runs: list[RunSpec], out: Path, episodes: int | None, jobs: int,
                    extra_sets: tuple[str, ...] = (), progress: bool = True, poll_s: float = 2.0) -> dict[str, int]:
     """Run ``runs`` as ``hdrqn train`` subprocesses, ``jobs`` at a time; logs go to ``out/NAME.log``.
@@ -211,7 +215,8 @@ def run_experiment(exp: Experiment, runs: list[RunSpec], out: Path, episodes: in
     before its first checkpoint starts again (its partial metrics files are set aside,
     :func:`set_aside`).
     Returns each run's exit code (0 for skipped ones). Ctrl-C or SIGTERM stops the children
-    (they checkpoint first).
+    (they checkpoint first), and so does a run interrupted on its own (exit :data:`INTERRUPTED`:
+    Ctrl-C sent to a background job's process group, whose driver ignores SIGINT): no further run starts.
     """
     config = config_dir() / exp.config
     write_manifest(exp, runs, out, episodes, extra_sets)
@@ -250,6 +255,8 @@ def run_experiment(exp: Experiment, runs: list[RunSpec], out: Path, episodes: in
                 if p.poll() is not None:
                     results[name] = p.returncode
                     del running[name]
+                    if p.returncode == INTERRUPTED:  # a Ctrl-C or SIGTERM the driver itself did not get
+                        raise KeyboardInterrupt(f"run {name} was interrupted")
                     if p.returncode != 0:
                         print(f"{exp.name}: run {name} failed (exit {p.returncode}); see {out / name}.log",
                               file=sys.stderr)

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import signal
 import subprocess
 import sys
 import time
@@ -152,3 +154,27 @@ def test_wall_clock_of_a_resumed_run_adds_its_parts():
 
     assert training_seconds(np.array([1.0, 5.0, 9.0])) == 9.0
     assert training_seconds(np.array([1.0, 5.0, 9.0, 0.5, 3.0, 2.0, 4.0])) == 9.0 + 3.0 + 4.0
+
+
+def test_ctrl_c_to_a_background_experiment_stops_it_instead_of_starting_the_next_run(tmp_path):
+    """A job started with ``&`` by a script ignores SIGINT; Ctrl-C sent to its process group
+    stops the running ``hdrqn train`` (exit 130), and the experiment stops there too."""
+    out = tmp_path / "exp"
+    argv = [*HDRQN, "experiment", "exp3-gridworld-2goals", "--algos", "dqn", "--seeds", "0", "1", "--jobs", "1",
+            "--episodes", "100000", "--out", str(out), "--no-progress", "--set", "num_envs=2", "--set", "eval_every=0"]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        deadline = time.monotonic() + 120
+        while episodes_logged(out / "dqn-s0") < 3 and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.2)
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)  # the driver and any run it started
+        except ProcessLookupError:
+            pass
+    assert proc.returncode == 130 and "hdrqn experiment: interrupted" in err, err
+    assert (out / "dqn-s0" / "checkpoints" / "last.pt").exists()
+    assert not (out / "dqn-s1.log").exists(), "the next run started after the interrupted one"

@@ -26,7 +26,7 @@ def test_publish_and_receive_int32(middleware):
     pub = talker.create_publisher("std_msgs/msg/Int32", "chatter")
     Int32 = talker.msg("std_msgs/msg/Int32")
     talker.create_timer(0.05, lambda: pub.publish(Int32(data=42)))  # repeats until discovery matched
-    middleware.spin(until=lambda: bool(got), timeout_s=10.0)
+    middleware.spin(until=lambda: bool(got), timeout_s=60.0)
     assert got and got[0] == 42
 
 
@@ -36,7 +36,7 @@ def test_latched_sample_reaches_late_subscriber(middleware):
     node.create_publisher("std_msgs/msg/Int32", "status", LATCHED_QOS).publish(Int32(data=7))
     got = []
     node.create_subscription("std_msgs/msg/Int32", "status", lambda m: got.append(m.data), LATCHED_QOS)
-    middleware.spin(until=lambda: bool(got), timeout_s=10.0)
+    middleware.spin(until=lambda: bool(got), timeout_s=60.0)
     assert got == [7]
 
 

@@ -158,8 +158,8 @@ def return_large_buffers_to_the_os() -> None:
     big buffers come from the heap and a burst of them (a flood of oversized samples, taken 64 at
     a time) can leave tens of MiB in the heap for the rest of the process: test_bounds measured
     +44 MiB once under load. A user's ``MALLOC_MMAP_THRESHOLD_`` wins; off glibc this does nothing.
-    Not for the learner: its per-update tensors are big and short-lived, and the heap serves them
-    faster than fresh maps."""
+    Not for the learner: its per-update tensors are big and short-lived, and a fresh map for each
+    would cost its page faults on every update."""
     if "MALLOC_MMAP_THRESHOLD_" in os.environ:
         return
     mallopt = getattr(ctypes.CDLL(None), "mallopt", None)

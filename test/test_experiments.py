@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from hdrqn_ros.experiments import EXPERIMENTS, config_dir, episodes_logged
+from hdrqn_ros.training.report import seed_spread
 
 HDRQN = [sys.executable, "-m", "hdrqn_ros.cli"]
 
@@ -178,3 +179,9 @@ def test_ctrl_c_to_a_background_experiment_stops_it_instead_of_starting_the_next
     assert proc.returncode == 130 and "hdrqn experiment: interrupted" in err, err
     assert (out / "dqn-s0" / "checkpoints" / "last.pt").exists()
     assert not (out / "dqn-s1.log").exists(), "the next run started after the interrupted one"
+
+
+def test_the_spread_over_seeds_is_the_sample_standard_deviation():
+    mean, sd = seed_spread([0.47, 0.13, 0.38])
+    assert mean == pytest.approx(0.3267, abs=1e-4) and sd == pytest.approx(0.1762, abs=1e-4)  # n - 1, not n (0.144)
+    assert seed_spread([0.5]) == (0.5, 0.0) and seed_spread([]) == (None, None)

@@ -52,6 +52,14 @@ def _run_row(run_dir: Path) -> dict | None:
     return row
 
 
+def seed_spread(values: list[float]) -> tuple[float | None, float | None]:
+    """(mean, sample standard deviation: n - 1 in the denominator) of one setting's per-seed
+    results; sd 0 for one seed, both None for none."""
+    if not values:
+        return None, None
+    return float(np.mean(values)), float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
+
+
 def experiment_rows(exp_dir: Path) -> list[dict]:
     """One dict per setting (label, in the manifest's order) with per-seed and aggregate figures."""
     exp_dir = Path(exp_dir)
@@ -71,8 +79,7 @@ def experiment_rows(exp_dir: Path) -> list[dict]:
         rows.append({
             "label": label, "seeds": [s for s, _ in runs], "finished": sum(r["finished"] for _, r in runs),
             "final_success": finals,
-            "final_mean": float(np.mean(finals)) if finals else None,
-            "final_std": float(np.std(finals)) if finals else None,
+            **dict(zip(("final_mean", "final_std"), seed_spread(finals))),
             "last3_mean": float(np.mean([r["last3_success"] for _, r in runs if "last3_success" in r]))
             if finals else None,
             "train_last500": float(np.mean([r["train_success_last500"] for _, r in runs])) if runs else None,
@@ -88,7 +95,8 @@ def _fmt(x: float | None, digits: int = 2) -> str:
 
 
 def markdown_table(rows: list[dict]) -> str:
-    """The rows as a Markdown table (success figures are greedy, ordered, over 100 held-out episodes)."""
+    """The rows as a Markdown table (success figures are greedy, ordered, over 100 held-out episodes;
+    sd is the sample standard deviation over the seeds, n - 1 in the denominator)."""
     lines = ["| setting | seeds (finished) | final greedy success: mean ± sd [min, max] | per seed | "
              "last 3 evals | training success (last 500) | greedy steps | episodes / env steps per run | "
              "wall-clock per run (min) |", "|---|---|---|---|---|---|---|---|---|"]

@@ -130,6 +130,26 @@ class TrainConfig(_Strict):
         lr = STATE_META_LR if role == "meta" and spec.meta_input == "state" else THESIS_LR
         return section.model_copy(update={"lr": lr})
 
+    def changes_since(self, saved: dict) -> list[str]:
+        """``"key: old -> new"`` for each setting (dotted, e.g. ``flat.gamma``) this config sets
+        differently from ``saved`` (a checkpoint's config), leaving out the budget (``episodes``)
+        and the controller sections this agent does not use (``flat`` for a hierarchical agent,
+        ``sub`` and ``meta`` for a flat one)."""
+        from hdrqn_ros.deploy.specs import ALGO_SPECS
+
+        unused = {"flat"} if ALGO_SPECS[self.algo].hierarchical else {"sub", "meta"}
+        changes: list[str] = []
+
+        def walk(old: Any, new: Any, key: str) -> None:
+            if isinstance(old, dict) and isinstance(new, dict):
+                for name in sorted(set(old) | set(new)):
+                    walk(old.get(name), new.get(name), f"{key}.{name}" if key else name)
+            elif old != new and key != "episodes" and key.split(".")[0] not in unused:
+                changes.append(f"{key}: {old!r} -> {new!r}")
+
+        walk(saved, self.model_dump(), "")
+        return changes
+
     @field_validator("device")
     @classmethod
     def _device(cls, device: str) -> str:

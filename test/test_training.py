@@ -108,11 +108,22 @@ def test_resume_continues_counters_and_csv(tmp_path):
     first = load_checkpoint(tmp_path / "checkpoints" / "last.pt")["progress"]
     with pytest.raises(CheckpointError, match="--resume"):
         Trainer(tiny(episodes=8), tmp_path, progress=False, tensorboard=False)
-    Trainer(tiny(episodes=8), tmp_path, resume=True, progress=False, tensorboard=False).run()
+    resumed = Trainer(tiny(episodes=8), tmp_path, resume=True, progress=False, tensorboard=False)
+    assert resumed.changed_settings == [] and "changed" not in resumed.resumed_line()  # a bigger budget only
+    resumed.run()
     second = load_checkpoint(tmp_path / "checkpoints" / "last.pt")["progress"]
     assert second["episodes"] == 8 and second["env_steps"] > first["env_steps"]
     episodes = [int(line.split(",")[0]) for line in (tmp_path / "train.csv").read_text().splitlines()[1:]]
     assert episodes == list(range(1, 9))
+
+
+def test_resume_names_the_settings_changed_since_the_run_started(tmp_path):
+    Trainer(tiny(episodes=2), tmp_path, progress=False, tensorboard=False).run()
+    changed = tiny(episodes=4, sub={"batch_size": 2, "replay_episodes": 50, "gamma": 0.99}, flat={"gamma": 0.5})
+    resumed = Trainer(changed, tmp_path, resume=True, progress=False, tensorboard=False)
+    # hDRQNv2 learns with sub and meta: flat's change does not concern it, sub's does
+    assert resumed.changed_settings == ["sub.gamma: 0.9 -> 0.99"]
+    assert resumed.resumed_line().endswith("; settings changed since the run started: sub.gamma: 0.9 -> 0.99")
 
 
 def test_checkpoint_of_another_algorithm_is_refused(tmp_path):

@@ -130,6 +130,7 @@ class Learner:
         self.env_steps = 0
         self.meta_begin: int | None = None  # env step at which the meta-controller starts learning
         self.replay_restored = False  # whether --resume refilled the replay from its snapshot
+        self.changed_settings: list[str] = []  # what --resume runs with that the checkpoint did not
         if resume:
             self._resume()
         elif self.checkpoint_path.exists():
@@ -169,6 +170,7 @@ class Learner:
             self.agent.load_state_dict(payload["agent"])
         except (KeyError, RuntimeError) as exc:
             raise CheckpointError(f"{self.checkpoint_path} does not fit this agent: {str(exc).splitlines()[0]}") from None
+        self.changed_settings = self.cfg.changes_since(saved)
         prog = payload["progress"]
         self.episodes, self.env_steps = int(prog["episodes"]), int(prog["env_steps"])
         self.meta_begin = prog.get("meta_begin")
@@ -182,7 +184,9 @@ class Learner:
         held = ", ".join(f"{role} {len(replay)} episodes" for role, replay in self.replays().items())
         replay = f"replay restored ({held})" if self.replay_restored else \
             "no replay snapshot: the replay refills before updates resume"
-        return f"resumed {self.checkpoint_path} at episode {self.episodes} ({self.env_steps} env steps); {replay}"
+        changed = (f"; settings changed since the run started: {', '.join(self.changed_settings)}"
+                   if self.changed_settings else "")
+        return f"resumed {self.checkpoint_path} at episode {self.episodes} ({self.env_steps} env steps); {replay}{changed}"
 
     def replays(self) -> dict:
         """The agent's replays by role: ``sub`` (a flat agent's one controller) and ``meta``."""

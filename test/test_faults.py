@@ -5,18 +5,25 @@ transition the learner acknowledged (flushed to its bag) is lost. The report is 
 from __future__ import annotations
 
 import json
+import sys
+import time
 from collections import defaultdict
 from pathlib import Path
 
+import numpy as np
+
 from hdrqn_ros.config import build_config
 from hdrqn_ros.graph import graph_processes
+from hdrqn_ros.protocol import wire
 from hdrqn_ros.recording.bag import bag_summary
 from hdrqn_ros.recording.transitions import BagReadStats, read_episodes
-from hdrqn_ros.supervisor import Supervisor
+from hdrqn_ros.supervisor import ProcessSpec, Supervisor
 
+from conftest import probe_middleware
 from test_graph import ENV, domain, graph_params, read_jsonl, wait_for  # noqa: F401  (domain: a fixture)
 
 NODES = ["environment", "critic", "meta_controller", "sub_controller", "learner"]
+STEP_NS = 10_000_000  # step keys are nanosecond stamps, one step apart
 
 
 def status(run_dir: Path) -> dict:
@@ -98,3 +105,42 @@ def test_kill_each_node_in_turn_loses_no_acknowledged_transition(domain, backend
     assert "resumed from" in log
     recovered = int(log.split("recovered ")[1].split()[0])
     assert recovered >= 1
+
+
+def test_a_respawned_sub_controller_hands_over_a_state_where_an_option_ends(domain, backend, tmp_path):
+    """The sub-controller killed between its action and the step after it, where an option
+    ends (the stall run 6 of the final stress series hit): hDRQNv2's meta-controller needs a
+    sub-controller state for that action before it chooses the next subgoal, and the
+    sub-controller needs that subgoal to act. The respawned process never took the action;
+    it hands over the state it has (fresh), so neither waits for ever."""
+    sub = ProcessSpec("sub", [sys.executable, "-c", "import sys; from hdrqn_ros.nodes.controllers import main_sub as m;"
+                              " sys.exit(m())", "--ros-args", "-p", "algo:=hdrqn-v2"])
+    sup = Supervisor([sub], log_dir=tmp_path / "logs", stop_timeout_s=30)
+    sup.start()
+    mw = probe_middleware(backend)
+    try:
+        node = mw.create_node("environment_and_critic")
+        pubs = {topic: node.create_publisher(kind, topic, wire.STEP_QOS) for topic, kind in
+                ((wire.ENV_STEP, wire.FLOATS), (wire.OBSERVATION, wire.IMAGE), (wire.CRITIC, wire.FLOATS))}
+        handed: list[int] = []
+        node.create_subscription(wire.FLOATS, wire.SUB_STATE, lambda m: handed.append(wire.read_state(m, 256)[0]),
+                                 wire.STEP_QOS)
+        for pub in pubs.values():
+            mw.spin(until=lambda: pub.get_subscription_count() > 0, timeout_s=120)
+            assert pub.get_subscription_count(), "the sub-controller never subscribed"
+        prev_key, key = 36 * STEP_NS, 37 * STEP_NS  # t = 37 of episode 0; the action on t = 36 came from the dead process
+        step = dict.fromkeys(wire.STEP_FIELDS, 0) | {"key": key, "prev_key": prev_key, "env_steps": 37, "t": 37,
+                                                      "at_subgoal": 1, "decision_point": 1}
+        deadline = time.monotonic() + 120
+        while not handed and time.monotonic() < deadline:  # re-published as the environment does while it waits
+            pubs[wire.ENV_STEP].publish(wire.make_record(node, wire.FLOATS, wire.STEP_FIELDS,
+                                                         [step[f] for f in wire.STEP_FIELDS]))
+            pubs[wire.OBSERVATION].publish(wire.make_image(node, key, np.zeros((44, 44, 3), np.uint8), "map"))
+            pubs[wire.CRITIC].publish(wire.make_record(node, wire.FLOATS, wire.CRITIC_FIELDS, [key, 1.0, 1, 1, 1]))
+            mw.spin(until=lambda: bool(handed), timeout_s=1.5)
+        sup.poll()
+        assert sup.returncodes["sub"] is None, "the sub-controller died"
+    finally:
+        mw.shutdown()
+        sup.stop()
+    assert handed and handed[0] == prev_key, f"no sub_state for the action before the option's end: {handed}"

@@ -345,15 +345,21 @@ class SubControllerNode(_Controller):
     def _hand_over_state(self, rows: list[dict], again: bool) -> None:
         """Publish ``sub_state`` for our last action if an option may end at the step after it
         (``rows``): a decision point, the episode's end, or the critic's ``option_done``. Not
-        ``again``: only if not yet published for that action."""
+        ``again``: only if not yet published for that action.
+
+        A process that has not acted yet, started (or respawned) after the action before
+        ``rows``, hands over the state it has, fresh: the state of the process that took that
+        action died with it, and without one the meta-controller would wait for ever while we
+        wait for its subgoal."""
         if self.pub_state is None or (not again and self.state_sent_key == self.acted_key):
             return
         critic = self.inbox.get(wire.CRITIC, int(rows[0]["key"]))
-        may_end = any(row["t"] > 0 and int(row["prev_key"]) == self.acted_key and
-                      (row["decision_point"] or done(row) or (critic is not None and critic[i]["option_done"]))
-                      for i, row in enumerate(rows))
-        if may_end:
-            self.pub_state.publish(wire.make_states(self.node, self.acted_key, self.policy.sub_end_state()))
+        never_acted = self.acted_key == 0
+        after = [int(row["prev_key"]) for i, row in enumerate(rows)
+                 if row["t"] > 0 and (never_acted or int(row["prev_key"]) == self.acted_key)
+                 and (row["decision_point"] or done(row) or (critic is not None and critic[i]["option_done"]))]
+        if after:
+            self.pub_state.publish(wire.make_states(self.node, after[0], self.policy.sub_end_state()))
             self.state_sent_key = self.acted_key
 
     def ready(self, rows: list[dict]) -> bool:

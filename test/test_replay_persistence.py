@@ -100,7 +100,8 @@ def test_save_replay_false_writes_no_snapshot_and_resumes_empty(tmp_path):
     resumed = Learner(tiny(episodes=4), tmp_path, resume=True, progress=False, tensorboard=False)
     assert not resumed.replay_restored and all(len(r) == 0 for r in resumed.replays().values())
     assert resumed.resumed_line().endswith("at episode 2 (%d env steps); no replay snapshot: the replay refills "
-                                           "before updates resume" % resumed.env_steps)
+                                           "before updates resume; settings changed since the run started: "
+                                           "save_replay: False -> True" % resumed.env_steps)
 
 
 def _episodes_logged(run_dir) -> int:

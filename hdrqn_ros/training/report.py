@@ -76,10 +76,11 @@ def experiment_rows(exp_dir: Path) -> list[dict]:
     for label in order:
         runs = by_label.get(label, [])
         finals = [r["final_success"] for _, r in runs if "final_success" in r]
+        final_mean, final_std = seed_spread(finals)
         rows.append({
             "label": label, "seeds": [s for s, _ in runs], "finished": sum(r["finished"] for _, r in runs),
             "final_success": finals,
-            **dict(zip(("final_mean", "final_std"), seed_spread(finals))),
+            "final_mean": final_mean, "final_std": final_std,
             "last3_mean": float(np.mean([r["last3_success"] for _, r in runs if "last3_success" in r]))
             if finals else None,
             "train_last500": float(np.mean([r["train_success_last500"] for _, r in runs])) if runs else None,

@@ -43,7 +43,7 @@ setup(
     ],
     package_data={PACKAGE: ["middleware/fastdds_loopback.xml"]},
     extras_require={
-        "test": ["pytest>=8", "pytest-rerunfailures>=14", "hypothesis>=6.100", "onnxruntime>=1.17", "onnx>=1.15",
+        "test": ["pytest>=8", "pytest-rerunfailures>=16.3", "hypothesis>=6.100", "onnxruntime>=1.17", "onnx>=1.15",
                  "ray>=2.9"],
         # hdrqn experiment NAME --ray: runs as Ray tasks (hdrqn_ros.cluster, docs/training.md "Cluster")
         "cluster": ["ray>=2.9"],

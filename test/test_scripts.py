@@ -57,6 +57,7 @@ def test_stress_tallies_passes_failures_and_retries(tmp_path):
     assert first.returncode == 1, first.stdout + first.stderr  # a test failed
     assert "the sample failure's own message" in first.stdout  # its own output, under the table
     assert "with a CPU hog kept elsewhere" in first.stdout
+    assert "retried in run 1: " in first.stdout and "first try" in first.stdout  # the retried test's failed try
     second = _stress(tmp_path, "--runs", "2", "--no-hog", "--out", str(out), str(sample))  # continues the tally
     assert "continuing" in second.stdout and second.returncode == 1
     summary = json.loads((out / "summary.json").read_text())

@@ -71,6 +71,15 @@ def test_stress_tallies_passes_failures_and_retries(tmp_path):
     assert len(by_name["test_passes"]["seconds"]) == 2
 
 
+def test_stress_shows_a_retried_tests_failed_try_when_all_pass(tmp_path):
+    sample = tmp_path / "test_sample.py"
+    sample.write_text(SAMPLE_TESTS)
+    run = _stress(tmp_path, "--runs", "1", "--no-hog", "--out", str(tmp_path / "out"), f"{sample}::test_fails_first_try_only")
+    assert run.returncode == 0, run.stdout + run.stderr
+    failed_try = run.stdout.split("the failed tries ---", 1)[1]
+    assert "AssertionError: first try" in failed_try and "1 passed" not in failed_try
+
+
 def test_stress_refuses_bad_arguments(tmp_path):
     bad = _stress(tmp_path, "--runs", "0", "--out", str(tmp_path))
     assert bad.returncode == 2 and "--runs must be >= 1" in bad.stderr

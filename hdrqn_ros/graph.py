@@ -74,7 +74,8 @@ def graph_processes(cfg: TrainConfig, params: Path, groups: int, respawn: bool =
             if node == "environment" and i > 0:
                 argv += ["-p", "publish_clock:=false"]  # one sim clock: group 0's
             specs.append(ProcessSpec(name=f"{ns.strip('/') or 'graph'}/{node}", argv=argv, respawn=respawn,
-                                     env=env(node)))
+                                     env=env(node), dumps_stacks=True))
     learner_argv = python_command(NODE_MODULES["learner"]) + ["--ros-args", "--params-file", str(params), "-p", "resume:=true"]
-    specs.append(ProcessSpec(name="learner", argv=learner_argv, respawn=respawn, required=True, env=env("learner")))
+    specs.append(ProcessSpec(name="learner", argv=learner_argv, respawn=respawn, required=True, env=env("learner"),
+                             dumps_stacks=True))
     return specs

@@ -103,5 +103,5 @@ def robot_processes(run: RobotRun, params: Path, hierarchical: bool, managed: tu
     for node in nodes:
         command = python_command(NODE_MODULES[node]) + (["--managed"] if node in managed else [])
         specs.append(ProcessSpec(name=node, argv=command + ["--ros-args", "--params-file", str(params)],
-                                 required=node == "robot_environment" and not run.record))
+                                 required=node == "robot_environment" and not run.record, dumps_stacks=True))
     return specs

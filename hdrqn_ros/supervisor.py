@@ -29,6 +29,8 @@ from typing import Callable, Iterable
 
 USAGE_EXIT = 2
 """Exit code of a process that rejected its parameters or input (never respawned)."""
+STACK_DUMP_SIGNAL = signal.SIGUSR1
+"""The signal on which every hdrqn node prints all its threads' Python stacks (and goes on)."""
 _LIVE: set[subprocess.Popen] = set()  # children not yet reaped (atexit safety net)
 
 
@@ -68,6 +70,8 @@ class ProcessSpec:
     respawn_delay_s: float = 1.0
     required: bool = False       # its (non-respawned) exit stops everything
     env: dict[str, str] | None = None  # environment variables of this process only (over the supervisor's)
+    dumps_stacks: bool = False   # it prints its stacks on STACK_DUMP_SIGNAL: stop() asks for them when it
+    #                              outlives the SIGINT grace, so its log shows where it hung
 
 
 class Supervisor:
@@ -108,7 +112,7 @@ class Supervisor:
         spec, out = self.specs[name], None
         if self.log_dir is not None:
             self.log_dir.mkdir(parents=True, exist_ok=True)
-            out = open(self.log_dir / (name.replace("/", "_") + ".log"), "ab")  # append
+            out = open(self.log_path(name), "ab")  # append
             out.write(f"=== {time.strftime('%Y-%m-%d %H:%M:%S')} start {name}: "
                       f"{shlex.join(spec.argv)}\n".encode())
             out.flush()
@@ -192,7 +196,9 @@ class Supervisor:
             self._respawn_at.clear()
             grace = (self.stop_timeout_s, min(1.0, self.stop_timeout_s / 2), 1.0)
             for sig, wait in zip((signal.SIGINT, signal.SIGTERM, signal.SIGKILL), grace):
-                for _, proc in self._alive():
+                for name, proc in self._alive():
+                    if sig == signal.SIGTERM:
+                        self._report_hang(name, proc)
                     _killpg(proc.pid, sig)
                 deadline = time.monotonic() + wait
                 while True:
@@ -205,6 +211,33 @@ class Supervisor:
                 if not self._alive():
                     break
         return dict(self.returncodes)
+
+    def _report_hang(self, name: str, proc: subprocess.Popen) -> None:
+        """Say that ``name`` outlived the SIGINT grace and, if it can, have it print its stacks."""
+        if proc.poll() is not None:
+            return
+        where = f"{self.log_path(name)}" if self.log_dir is not None else "its stderr"
+        if self.specs[name].dumps_stacks:
+            try:
+                os.kill(proc.pid, STACK_DUMP_SIGNAL)
+            except ProcessLookupError:
+                return
+            print(f"[supervisor] {name} did not stop within {self.stop_timeout_s:g} s of SIGINT; its threads' "
+                  f"stacks are in {where}; sending SIGTERM", file=sys.stderr)
+        else:
+            print(f"[supervisor] {name} did not stop within {self.stop_timeout_s:g} s of SIGINT; sending SIGTERM",
+                  file=sys.stderr)
+
+    def log_path(self, name: str) -> Path:
+        """The log file of process ``name`` (needs ``log_dir``)."""
+        if self.log_dir is None:
+            raise ValueError("this supervisor keeps no logs (no log_dir)")
+        return self.log_dir / (name.replace("/", "_") + ".log")
+
+    def log_tail(self, name: str, lines: int = 40) -> str:
+        """The last ``lines`` lines of process ``name``'s log ("" before it has one)."""
+        path = self.log_path(name)
+        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:]) if path.exists() else ""
 
     def status_line(self) -> str:
         """One line: how many processes are up, restarts, anything not up, then status()."""

@@ -11,9 +11,9 @@ import numpy as np
 
 from hdrqn_ros.middleware.port import LATCHED_QOS
 from hdrqn_ros.protocol import wire
-from hdrqn_ros.supervisor import ProcessSpec, Supervisor
+from hdrqn_ros.supervisor import Supervisor
 
-from conftest import probe_middleware
+from conftest import node_process, probe_middleware
 from test_graph import domain, wait_for  # noqa: F401  (domain: a fixture)
 
 LIMIT = 1 << 20  # the sub-controller's max_message_bytes in this test
@@ -27,8 +27,7 @@ def rss_mib(pid: int) -> float:
 
 
 def test_oversized_images_and_weights_are_dropped_without_growing_memory(domain, backend, tmp_path):
-    sub = ProcessSpec("sub", [sys.executable, "-c", "import sys; from hdrqn_ros.nodes.controllers import main_sub as m;"
-                              " sys.exit(m())", "--ros-args", "-p", "algo:=dqn", "-p", f"max_message_bytes:={LIMIT}"])
+    sub = node_process("sub", "sub_controller", "-p", "algo:=dqn", "-p", f"max_message_bytes:={LIMIT}")
     sup = Supervisor([sub], log_dir=tmp_path / "logs", stop_timeout_s=30)
     log = tmp_path / "logs" / "sub.log"
     sup.start()

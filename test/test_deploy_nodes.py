@@ -39,7 +39,7 @@ def _spec(node: str, *params: str) -> ProcessSpec:
                                                  "-p", "seed:=3"]
     for param in params:
         argv += ["-p", param]
-    return ProcessSpec(node, argv)
+    return ProcessSpec(node, argv, dumps_stacks=True)
 
 
 def _proc_status(pid: int) -> tuple[str, int]:
@@ -136,7 +136,7 @@ def test_a_policy_that_does_not_fit_the_node_exits_2_naming_the_problem(domain, 
     specs = []
     for case, (node, params, _) in BAD_CASES.items():
         spec = _spec(node, *(p.format(**names) for p in params))
-        specs.append(ProcessSpec(case, spec.argv))
+        specs.append(ProcessSpec(case, spec.argv, dumps_stacks=True))
     sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=30)
     sup.start()
     try:

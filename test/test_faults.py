@@ -5,7 +5,6 @@ transition the learner acknowledged (flushed to its bag) is lost. The report is 
 from __future__ import annotations
 
 import json
-import sys
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -17,9 +16,9 @@ from hdrqn_ros.graph import graph_processes
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.recording.bag import bag_summary
 from hdrqn_ros.recording.transitions import BagReadStats, read_episodes
-from hdrqn_ros.supervisor import ProcessSpec, Supervisor
+from hdrqn_ros.supervisor import Supervisor
 
-from conftest import probe_middleware
+from conftest import node_process, probe_middleware
 from test_graph import ENV, domain, graph_params, read_jsonl, wait_for  # noqa: F401  (domain: a fixture)
 
 NODES = ["environment", "critic", "meta_controller", "sub_controller", "learner"]
@@ -113,8 +112,7 @@ def test_a_respawned_sub_controller_hands_over_a_state_where_an_option_ends(doma
     sub-controller state for that action before it chooses the next subgoal, and the
     sub-controller needs that subgoal to act. The respawned process never took the action;
     it hands over the state it has (fresh), so neither waits for ever."""
-    sub = ProcessSpec("sub", [sys.executable, "-c", "import sys; from hdrqn_ros.nodes.controllers import main_sub as m;"
-                              " sys.exit(m())", "--ros-args", "-p", "algo:=hdrqn-v2"])
+    sub = node_process("sub", "sub_controller", "-p", "algo:=hdrqn-v2")
     sup = Supervisor([sub], log_dir=tmp_path / "logs", stop_timeout_s=30)
     sup.start()
     mw = probe_middleware(backend)

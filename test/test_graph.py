@@ -26,10 +26,10 @@ from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.wire import obs_digest
 from hdrqn_ros.recording.bag import BagWriter
 from hdrqn_ros.recording.transitions import GROUP_TOPICS, episode_summary, read_episodes
-from hdrqn_ros.supervisor import ProcessSpec, Supervisor
+from hdrqn_ros.supervisor import STACK_DUMP_SIGNAL, Supervisor
 from hdrqn_ros.throttle import BURST, THROTTLE_PERIOD_S
 
-from conftest import NO_RCLPY, probe_middleware
+from conftest import NO_RCLPY, node_process, probe_middleware
 
 ENV = "hdrqn/GridWorld-2Goals-v0"
 FLOOD = 300
@@ -337,10 +337,8 @@ def test_nodes_of_a_group_with_different_num_envs_stop_with_exit_2(domain, backe
 
 def test_sub_controller_drives_cmd_vel_from_a_costmap(domain, backend, tmp_path):
     """Nav2 path: OccupancyGrid in, Twist out, no environment node; zero Twist on shutdown."""
-    spec = ProcessSpec("sub", [sys.executable, "-c", "import sys; from hdrqn_ros.nodes.controllers import main_sub "
-                               "as m; sys.exit(m())", "--ros-args", "-p", "algo:=drqn", "-p", "epsilon:=0.0",
-                               "-p", "observation_source:=costmap", "-p",
-                               f"action_table:={CONFIG / 'nav2' / 'actions.yaml'}"])
+    spec = node_process("sub", "sub_controller", "-p", "algo:=drqn", "-p", "epsilon:=0.0",
+                        "-p", "observation_source:=costmap", "-p", f"action_table:={CONFIG / 'nav2' / 'actions.yaml'}")
     sup = Supervisor([spec], log_dir=tmp_path / "logs", stop_timeout_s=30)
     sup.start()
     mw = probe_middleware(backend)
@@ -380,8 +378,7 @@ def test_late_joiner_sees_ros_discovery_info(domain, backend, tmp_path):
 
     from hdrqn_ros.middleware.messages import message_class
 
-    specs = [ProcessSpec(name, [sys.executable, "-m", f"hdrqn_ros.nodes.{module}", "--ros-args", "-r", "__ns:=/g7"])
-             for name, module in (("env", "environment"), ("critic", "critic"))]
+    specs = [node_process(name, node, "-r", "__ns:=/g7") for name, node in (("env", "environment"), ("critic", "critic"))]
     sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=30)
     sup.start()
     try:
@@ -411,13 +408,27 @@ def test_late_joiner_sees_ros_discovery_info(domain, backend, tmp_path):
         sup.stop()
 
 
+def test_a_node_prints_its_stacks_on_sigusr1_and_goes_on(domain, backend, tmp_path):
+    """``kill -USR1`` shows where a node is (what the supervisor asks of a node that will not
+    stop); the node keeps running and later stops normally."""
+    sup = Supervisor([node_process("env", "environment")], log_dir=tmp_path / "logs", stop_timeout_s=30)
+    sup.start()
+    try:
+        wait_for(lambda: "middleware" in sup.log_tail("env"), 120, "the environment node's start", sup)
+        sup.kill("env", STACK_DUMP_SIGNAL)
+        wait_for(lambda: "most recent call first" in sup.log_tail("env", 200), 60, "the node's stacks in its log", sup)
+        assert "in run_node" in sup.log_tail("env", 200)
+    finally:
+        codes = sup.stop()
+    assert codes == {"env": 0}, sup.log_tail("env")
+
+
 def test_malformed_messages_are_rejected_and_logged(domain, backend, tmp_path):
     """Bad messages from a real publisher of the same backend are rejected with a throttled
     warning; the nodes keep running and answering."""
-    specs = [ProcessSpec("env", [sys.executable, "-m", "hdrqn_ros.nodes.environment"]),
-             ProcessSpec("sub", [sys.executable, "-c", "import sys; from hdrqn_ros.nodes.controllers import "
-                                 "main_sub as m; sys.exit(m())", "--ros-args", "-p", "algo:=dqn",
-                                 "-r", "observation:=/probe_obs", "-r", "env_step:=/probe_step"])]
+    specs = [node_process("env", "environment"),
+             node_process("sub", "sub_controller", "-p", "algo:=dqn", "-r", "observation:=/probe_obs",
+                          "-r", "env_step:=/probe_step")]
     sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=30)
     sup.start()
     mw = probe_middleware(backend)
@@ -476,7 +487,8 @@ def test_malformed_messages_are_rejected_and_logged(domain, backend, tmp_path):
         mw.shutdown()
         codes = sup.stop()
     flood_s = time.monotonic() - flood_started
-    assert all(rc == 0 for rc in codes.values()), codes
+    assert all(rc == 0 for rc in codes.values()), \
+        f"{codes}\n" + "\n".join(f"--- {name}:\n{sup.log_tail(name)}" for name, rc in codes.items() if rc)
     env_log = (tmp_path / "logs" / "env.log").read_text()
     sub_log = (tmp_path / "logs" / "sub.log").read_text()
     assert "action 99 is out of range" in env_log and "expected 2 values" in env_log and "NaN" in env_log

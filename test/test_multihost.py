@@ -201,15 +201,14 @@ def episodes_ended(path: Path, group: str) -> int:
 class Watch:
     """Polls the supervisor (failing fast, with the log, if a process exits) and the learner status."""
 
-    def __init__(self, sup: Supervisor, run_dir: Path, log_dir: Path):
-        self.sup, self.run_dir, self.log_dir = sup, run_dir, log_dir
+    def __init__(self, sup: Supervisor, run_dir: Path):
+        self.sup, self.run_dir = sup, run_dir
 
     def poll(self) -> dict | None:
         self.sup.poll()
         for name, rc in self.sup.returncodes.items():
             if rc is not None:
-                log = (self.log_dir / (name.replace("/", "_") + ".log")).read_text()[-3000:]
-                raise AssertionError(f"{name} exited with code {rc} mid-run:\n{log}")
+                raise AssertionError(f"{name} exited with code {rc} mid-run:\n{self.sup.log_tail(name)}")
         return status(self.run_dir)
 
     def until(self, cond, timeout: float, what: str):
@@ -258,7 +257,7 @@ def test_actor_group_cut_off_and_restored_rejoins(domain, backend, hosts, tmp_pa
     sup = start_multihost_graph(tmp_path, hosts, lost_after_s=60.0 if cut_s < LEASE_S else 10.0)
     timeline = {}
     try:
-        watch = Watch(sup, run_dir, tmp_path / "logs")
+        watch = Watch(sup, run_dir)
         watch.until(lambda st: st and st["updates"] > 0 and all(episodes_ended(tlog, g) for g in (a, b)), 150,
                     "an episode from each group over the virtual links, and training")
         timeline["both_groups_s"] = time.monotonic() - t0

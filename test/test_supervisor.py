@@ -52,6 +52,12 @@ def sups():
     for s in made:  # never leak children, even when a test fails
         s.stop()
 
+HANGS_ON_STOP = ("import faulthandler, signal, time\n"
+                 "faulthandler.register(signal.SIGUSR1, all_threads=True)\n"
+                 "signal.signal(signal.SIGINT, signal.SIG_IGN); signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+                 "def stuck_in_close():\n    time.sleep(60)\n"
+                 "print('ready', flush=True); stuck_in_close()\n")
+
 
 def test_stop_terminates_all(sups, tmp_path):
     sup = Supervisor([spec(f"g/p{i}", READY) for i in range(3)], log_dir=tmp_path, stop_timeout_s=60.0)
@@ -78,6 +84,25 @@ def test_stubborn_process_is_killed(sups, tmp_path):
     assert codes["stubborn"] == -signal.SIGKILL
     assert 0.5 <= elapsed < 30  # SIGKILL only after the SIGINT's timeout, and then at once
     assert gone(pid)
+
+
+@pytest.mark.parametrize("dumps_stacks", [True, False])
+def test_a_process_that_outlives_the_sigint_grace_is_reported(sups, tmp_path, capfd, dumps_stacks):
+    """One that can print its stacks (as every node can) is asked for them before SIGTERM: its log
+    shows where it hung. Any other is not sent the signal (it would die of it, unreported)."""
+    sup = Supervisor([spec("node", HANGS_ON_STOP, dumps_stacks=dumps_stacks)], log_dir=tmp_path, stop_timeout_s=0.5)
+    sups.append(sup)
+    sup.start()
+    wait_ready(tmp_path, "node")
+    assert sup.stop() == {"node": -signal.SIGKILL}
+    said = capfd.readouterr().err
+    assert "[supervisor] node did not stop within 0.5 s of SIGINT" in said
+    log = sup.log_tail("node")
+    if dumps_stacks:
+        assert f"stacks are in {tmp_path / 'node.log'}" in said
+        assert 'line 5 in stuck_in_close' in log, log
+    else:
+        assert "stacks" not in said and "line 5 in stuck_in_close" not in log
 
 
 def test_respawn_and_kill(sups):

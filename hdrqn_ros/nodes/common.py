@@ -5,6 +5,7 @@ imported when :func:`make_acting_network` builds one."""
 from __future__ import annotations
 
 import ctypes
+import faulthandler
 import os
 import signal
 import sys
@@ -21,6 +22,7 @@ from hdrqn_ros.middleware import (BackendError, Middleware, Node, ParameterError
 from hdrqn_ros.middleware.ros_args import split_ros_args
 from hdrqn_ros.nodes.managed import MANAGED_FLAG, ManagedNode
 from hdrqn_ros.protocol.wire import MAX_ENVS
+from hdrqn_ros.supervisor import STACK_DUMP_SIGNAL
 
 ENV_DEFAULTS = {"algo": "hdrqn-v2", "env": "hdrqn/GridWorld-2Goals-v0", "view": "5", "seed": 0}
 """Parameters every training-graph node declares (the launch files set them once for all
@@ -181,7 +183,8 @@ def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None,
 
     SIGINT (Ctrl-C, what ``ros2 launch`` sends) and SIGTERM are a normal stop: exit code
     the object's ``exit_code`` (0). 2 for bad parameters, arguments, checkpoints, policies or bags:
-    :data:`STARTUP_ERRORS` and the node's ``input_errors``."""
+    :data:`STARTUP_ERRORS` and the node's ``input_errors``. While it runs, :data:`STACK_DUMP_SIGNAL`
+    (SIGUSR1) prints every thread's stack to stderr."""
     if large_buffers_to_os:
         return_large_buffers_to_the_os()
     argv = list(sys.argv if argv is None else argv)
@@ -191,6 +194,7 @@ def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None,
         return 2
     stopped = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stopped.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    dumps_stacks = _print_stacks_on(STACK_DUMP_SIGNAL)
     middleware = built = None
     try:
         middleware = open_middleware(argv)
@@ -210,3 +214,15 @@ def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None,
             middleware.shutdown()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        if dumps_stacks:
+            faulthandler.unregister(STACK_DUMP_SIGNAL)
+
+
+def _print_stacks_on(sig: int) -> bool:
+    """On ``sig`` print every thread's Python stack to stderr and go on (``kill -USR1 PID``
+    shows where a node is stuck); False where stderr has no file descriptor."""
+    try:
+        faulthandler.register(sig, all_threads=True)
+    except (AttributeError, ValueError, OSError):  # stderr captured in memory
+        return False
+    return True

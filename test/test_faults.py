@@ -5,6 +5,8 @@ transition the learner acknowledged (flushed to its bag) is lost. The report is 
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -22,6 +24,17 @@ from conftest import node_process, probe_middleware
 from test_graph import ENV, domain, graph_params, read_jsonl, wait_for  # noqa: F401  (domain: a fixture)
 
 NODES = ["environment", "critic", "meta_controller", "sub_controller", "learner"]
+HUNG_TEARDOWN = """
+import sys, threading
+from hdrqn_ros.nodes import common
+common.MIDDLEWARE_SHUTDOWN_LIMIT_S = 1.0
+class Finished:  # a node with nothing left to do, and its own exit code
+    finished, exit_code = True, 3
+def build(mw):
+    mw.shutdown = lambda: threading.Event().wait()  # a DDS library's teardown that never returns
+    return Finished()
+sys.exit(common.run_node(build, ["hung"]))
+"""
 STEP_NS = 10_000_000  # step keys are nanosecond stamps, one step apart
 
 
@@ -142,3 +155,12 @@ def test_a_respawned_sub_controller_hands_over_a_state_where_an_option_ends(doma
         mw.shutdown()
         sup.stop()
     assert handed and handed[0] == prev_key, f"no sub_state for the action before the option's end: {handed}"
+
+
+def test_a_middleware_teardown_that_hangs_is_cut_short(domain, backend):
+    """A node whose DDS library never finishes shutting down still exits, with its own exit
+    code, and says why with every thread's stack (where the teardown hung)."""
+    proc = subprocess.run([sys.executable, "-c", HUNG_TEARDOWN], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 3, proc.stderr
+    assert f"the {backend} middleware did not shut down within 1 s" in proc.stderr
+    assert "in shut_down_within" in proc.stderr and "in <lambda>" in proc.stderr, proc.stderr

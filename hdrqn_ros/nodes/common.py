@@ -147,6 +147,10 @@ STARTUP_ERRORS = (NodeConfigError, ParameterError, RosArgsError, BackendError, P
 so that a node imports only what it uses: the environment and critic stay small)."""
 
 
+MIDDLEWARE_SHUTDOWN_LIMIT_S = 5.0
+"""How long a stopping node waits for its middleware to shut down before it exits without it
+(:func:`shut_down_within`): less than the 10 s ``ros2 launch`` allows from SIGINT to SIGKILL;
+a normal teardown takes well under a second."""
 LARGE_BUFFER_BYTES = 256 * 1024
 """Allocations of this size or more get memory maps of their own in a node process (see
 :func:`return_large_buffers_to_the_os`)."""
@@ -196,26 +200,54 @@ def run_node(build: Callable[[Middleware], Any], argv: list[str] | None = None,
     previous = {sig: signal.signal(sig, lambda *_: stopped.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     dumps_stacks = _print_stacks_on(STACK_DUMP_SIGNAL)
     middleware = built = None
+    exit_code = 1  # until the node says otherwise: an exception is on its way out
     try:
         middleware = open_middleware(argv)
         built = ManagedNode(middleware, managed_name, build, (*STARTUP_ERRORS, *input_errors)) if managed \
             else build(middleware)
         middleware.spin(until=lambda: stopped.is_set() or getattr(built, "finished", False))
-        return getattr(built, "exit_code", 0)
+        exit_code = getattr(built, "exit_code", 0)
     except KeyboardInterrupt:
-        return 130
+        exit_code = 130
     except (*STARTUP_ERRORS, *input_errors) as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return 2
+        exit_code = 2
     finally:
         if built is not None and hasattr(built, "close"):
             built.close()
         if middleware is not None:
-            middleware.shutdown()
+            shut_down_within(middleware, MIDDLEWARE_SHUTDOWN_LIMIT_S, exit_code)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         if dumps_stacks:
             faulthandler.unregister(STACK_DUMP_SIGNAL)
+    return exit_code
+
+
+def shut_down_within(middleware: Middleware, limit_s: float, exit_code: int) -> None:
+    """``middleware.shutdown()``, bounded: if it has not returned after ``limit_s`` (a DDS
+    library's teardown that hangs), print why and every thread's stack to stderr and end the
+    process with ``exit_code``. It runs after the node's ``close()``: nothing of the node's
+    own is left to save, and peers see it go when its DDS lease runs out."""
+    returned = threading.Event()
+
+    def give_up() -> None:
+        if returned.wait(limit_s):
+            return
+        print(f"warning: the {middleware.backend} middleware did not shut down within {limit_s:g} s; every "
+              f"thread's stack follows; exiting with code {exit_code} without it", file=sys.stderr, flush=True)
+        try:
+            faulthandler.dump_traceback(all_threads=True)
+        except (AttributeError, ValueError, OSError):  # stderr captured in memory
+            pass
+        sys.stdout.flush()
+        os._exit(exit_code)
+
+    threading.Thread(target=give_up, name="shutdown-watchdog", daemon=True).start()
+    try:
+        middleware.shutdown()
+    finally:
+        returned.set()
 
 
 def _print_stacks_on(sig: int) -> bool:

@@ -416,8 +416,9 @@ def test_a_node_prints_its_stacks_on_sigusr1_and_goes_on(domain, backend, tmp_pa
     try:
         wait_for(lambda: "middleware" in sup.log_tail("env"), 120, "the environment node's start", sup)
         sup.kill("env", STACK_DUMP_SIGNAL)
-        wait_for(lambda: "most recent call first" in sup.log_tail("env", 200), 60, "the node's stacks in its log", sup)
-        assert "in run_node" in sup.log_tail("env", 200)
+        # written a line at a time: wait for the main thread's frame inside run_node
+        wait_for(lambda: "in run_node" in sup.log_tail("env", 200), 60, "the node's stacks in its log", sup)
+        assert "most recent call first" in sup.log_tail("env", 200)
     finally:
         codes = sup.stop()
     assert codes == {"env": 0}, sup.log_tail("env")

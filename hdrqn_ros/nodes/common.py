@@ -243,11 +243,15 @@ def shut_down_within(middleware: Middleware, limit_s: float, exit_code: int) -> 
         sys.stdout.flush()
         os._exit(exit_code)
 
-    threading.Thread(target=give_up, name="shutdown-watchdog", daemon=True).start()
+    watchdog = threading.Thread(target=give_up, name="shutdown-watchdog", daemon=True)
+    watchdog.start()
     try:
         middleware.shutdown()
     finally:
         returned.set()
+        # gone before the interpreter's exit: a thread still waking up then gets ended by
+        # Python 3.12 (pthread_exit), which aborted a node that had torch loaded 2 times in 8
+        watchdog.join()
 
 
 def _print_stacks_on(sig: int) -> bool:

@@ -450,7 +450,7 @@ class RclpyMiddleware(Middleware):
         """Spin the executor in steps of at most 50 ms; returns early if the context is shut down."""
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         try:
-            while self._context.ok() and not (until is not None and until()):
+            while not self._closed and self._context.ok() and not (until is not None and until()):
                 step = _SPIN_STEP_S if deadline is None else min(_SPIN_STEP_S, deadline - time.monotonic())
                 if step <= 0:
                     return
@@ -460,7 +460,9 @@ class RclpyMiddleware(Middleware):
 
     def shutdown(self) -> None:
         """Stop the executor, destroy the nodes and shut the context down, in rclpy's own order
-        (no callback runs while the nodes go); safe to call twice."""
+        (no callback runs while the nodes go), then free the executor and the context, whose
+        native threads (the events executor's, the DDS participant's) stop here, while Python
+        runs, not in the interpreter's exit; safe to call twice."""
         if self._closed:
             return
         self._closed = True
@@ -469,3 +471,5 @@ class RclpyMiddleware(Middleware):
             node.destroy(leave_executor=False)
         self._nodes.clear()
         rclpy.try_shutdown(context=self._context)
+        self._executor = None
+        self._context.destroy()

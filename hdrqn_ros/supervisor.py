@@ -216,7 +216,7 @@ class Supervisor:
         """Say that ``name`` outlived the SIGINT grace and, if it can, have it print its stacks."""
         if proc.poll() is not None:
             return
-        where = f"{self.log_path(name)}" if self.log_dir is not None else "its stderr"
+        where = str(self.log_path(name)) if self.log_dir is not None else "its stderr"
         if self.specs[name].dumps_stacks:
             try:
                 os.kill(proc.pid, STACK_DUMP_SIGNAL)

@@ -15,6 +15,7 @@ import yaml
 from hdrqn_ros.agents.algorithms import ALGO_SPECS
 from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.middleware import BACKEND_ENV
+from hdrqn_ros.nodes import STACK_DUMP_SIGNAL
 from hdrqn_ros.protocol.wire import group_namespaces
 from hdrqn_ros.supervisor import ProcessSpec, python_command
 
@@ -74,8 +75,8 @@ def graph_processes(cfg: TrainConfig, params: Path, groups: int, respawn: bool =
             if node == "environment" and i > 0:
                 argv += ["-p", "publish_clock:=false"]  # one sim clock: group 0's
             specs.append(ProcessSpec(name=f"{ns.strip('/') or 'graph'}/{node}", argv=argv, respawn=respawn,
-                                     env=env(node), dumps_stacks=True))
+                                     env=env(node), stack_dump_signal=STACK_DUMP_SIGNAL))
     learner_argv = python_command(NODE_MODULES["learner"]) + ["--ros-args", "--params-file", str(params), "-p", "resume:=true"]
     specs.append(ProcessSpec(name="learner", argv=learner_argv, respawn=respawn, required=True, env=env("learner"),
-                             dumps_stacks=True))
+                             stack_dump_signal=STACK_DUMP_SIGNAL))
     return specs

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import yaml
 
+from hdrqn_ros.nodes import STACK_DUMP_SIGNAL
 from hdrqn_ros.supervisor import ProcessSpec, python_command
 
 MODES = ("sub-drives", "meta-only")
@@ -103,5 +104,6 @@ def robot_processes(run: RobotRun, params: Path, hierarchical: bool, managed: tu
     for node in nodes:
         command = python_command(NODE_MODULES[node]) + (["--managed"] if node in managed else [])
         specs.append(ProcessSpec(name=node, argv=command + ["--ros-args", "--params-file", str(params)],
-                                 required=node == "robot_environment" and not run.record, dumps_stacks=True))
+                                 required=node == "robot_environment" and not run.record,
+                                 stack_dump_signal=STACK_DUMP_SIGNAL))
     return specs

@@ -29,8 +29,6 @@ from typing import Callable, Iterable
 
 USAGE_EXIT = 2
 """Exit code of a process that rejected its parameters or input (never respawned)."""
-STACK_DUMP_SIGNAL = signal.SIGUSR1
-"""The signal on which every hdrqn node prints all its threads' Python stacks (and goes on)."""
 _LIVE: set[subprocess.Popen] = set()  # children not yet reaped (atexit safety net)
 
 
@@ -70,8 +68,8 @@ class ProcessSpec:
     respawn_delay_s: float = 1.0
     required: bool = False       # its (non-respawned) exit stops everything
     env: dict[str, str] | None = None  # environment variables of this process only (over the supervisor's)
-    dumps_stacks: bool = False   # it prints its stacks on STACK_DUMP_SIGNAL: stop() asks for them when it
-    #                              outlives the SIGINT grace, so its log shows where it hung
+    stack_dump_signal: int | None = None  # a signal on which it prints its stacks and goes on: stop()
+    #                              sends it when the process outlives the SIGINT grace, so its log shows where it hung
 
 
 class Supervisor:
@@ -217,9 +215,10 @@ class Supervisor:
         if proc.poll() is not None:
             return
         where = str(self.log_path(name)) if self.log_dir is not None else "its stderr"
-        if self.specs[name].dumps_stacks:
+        dump_signal = self.specs[name].stack_dump_signal
+        if dump_signal is not None:
             try:
-                os.kill(proc.pid, STACK_DUMP_SIGNAL)
+                os.kill(proc.pid, dump_signal)
             except ProcessLookupError:
                 return
             print(f"[supervisor] {name} did not stop within {self.stop_timeout_s:g} s of SIGINT; its threads' "

@@ -6,6 +6,7 @@ import pytest
 from hdrqn_ros.graph import NODE_MODULES
 from hdrqn_ros.middleware import BACKEND_ENV, open_middleware
 from hdrqn_ros.middleware.rclpy_backend import rclpy_available
+from hdrqn_ros.nodes import STACK_DUMP_SIGNAL
 from hdrqn_ros.supervisor import ProcessSpec, python_command
 
 NO_RCLPY = pytest.mark.skipif(not rclpy_available(), reason="rclpy (the ROS 2 Jazzy wheels, extra [ros]) is not "
@@ -57,4 +58,4 @@ def node_process(name: str, node: str, *ros_args: str) -> ProcessSpec:
     """Process ``name`` running the graph's ``node`` (``"sub_controller"``...) with ``ros_args``
     (after ``--ros-args``); if it outlives its stop's SIGINT grace, its log gets its stacks."""
     return ProcessSpec(name, python_command(NODE_MODULES[node]) + (["--ros-args", *ros_args] if ros_args else []),
-                       dumps_stacks=True)
+                       stack_dump_signal=STACK_DUMP_SIGNAL)

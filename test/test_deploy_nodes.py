@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from hdrqn_ros.graph import NODE_MODULES
+from hdrqn_ros.nodes import STACK_DUMP_SIGNAL
 from hdrqn_ros.supervisor import ProcessSpec, Supervisor, python_command
 from hdrqn_ros.training.export import export_policy
 
@@ -39,7 +40,7 @@ def _spec(node: str, *params: str) -> ProcessSpec:
                                                  "-p", "seed:=3"]
     for param in params:
         argv += ["-p", param]
-    return ProcessSpec(node, argv, dumps_stacks=True)
+    return ProcessSpec(node, argv, stack_dump_signal=STACK_DUMP_SIGNAL)
 
 
 def _proc_status(pid: int) -> tuple[str, int]:
@@ -136,7 +137,7 @@ def test_a_policy_that_does_not_fit_the_node_exits_2_naming_the_problem(domain, 
     specs = []
     for case, (node, params, _) in BAD_CASES.items():
         spec = _spec(node, *(p.format(**names) for p in params))
-        specs.append(ProcessSpec(case, spec.argv, dumps_stacks=True))
+        specs.append(ProcessSpec(case, spec.argv, stack_dump_signal=STACK_DUMP_SIGNAL))
     sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=30)
     sup.start()
     try:

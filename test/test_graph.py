@@ -26,7 +26,8 @@ from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.wire import obs_digest
 from hdrqn_ros.recording.bag import BagWriter
 from hdrqn_ros.recording.transitions import GROUP_TOPICS, episode_summary, read_episodes
-from hdrqn_ros.supervisor import STACK_DUMP_SIGNAL, Supervisor
+from hdrqn_ros.nodes import STACK_DUMP_SIGNAL
+from hdrqn_ros.supervisor import Supervisor
 from hdrqn_ros.throttle import BURST, THROTTLE_PERIOD_S
 
 from conftest import NO_RCLPY, node_process, probe_middleware

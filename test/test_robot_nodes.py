@@ -102,7 +102,7 @@ def start(tmp_path: Path, checkpoint: Path, mode: str, episodes: int = EPISODES,
     for spec in robot_processes(run, params, hierarchical=True, managed=managed):
         extra = [f"{name}:={value}" for name, value in overrides.get(spec.name, {}).items()]
         specs.append(ProcessSpec(spec.name, spec.argv + [a for item in extra for a in ("-p", item)],
-                                 required=spec.required, dumps_stacks=True))
+                                 required=spec.required, stack_dump_signal=spec.stack_dump_signal))
     sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=30)
     sup.start()
     return sup, log

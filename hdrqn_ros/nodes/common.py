@@ -20,9 +20,9 @@ from hdrqn_ros.extras import MissingExtra, require
 from hdrqn_ros.middleware import (BackendError, Middleware, Node, ParameterError, ParameterRule, RosArgsError,
                                   open_middleware)
 from hdrqn_ros.middleware.ros_args import split_ros_args
+from hdrqn_ros.nodes import STACK_DUMP_SIGNAL
 from hdrqn_ros.nodes.managed import MANAGED_FLAG, ManagedNode
 from hdrqn_ros.protocol.wire import MAX_ENVS
-from hdrqn_ros.supervisor import STACK_DUMP_SIGNAL
 
 ENV_DEFAULTS = {"algo": "hdrqn-v2", "env": "hdrqn/GridWorld-2Goals-v0", "view": "5", "seed": 0}
 """Parameters every training-graph node declares (the launch files set them once for all

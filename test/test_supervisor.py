@@ -90,7 +90,8 @@ def test_stubborn_process_is_killed(sups, tmp_path):
 def test_a_process_that_outlives_the_sigint_grace_is_reported(sups, tmp_path, capfd, dumps_stacks):
     """One that can print its stacks (as every node can) is asked for them before SIGTERM: its log
     shows where it hung. Any other is not sent the signal (it would die of it, unreported)."""
-    sup = Supervisor([spec("node", HANGS_ON_STOP, stack_dump_signal=signal.SIGUSR1 if dumps_stacks else None)], log_dir=tmp_path, stop_timeout_s=0.5)
+    sup = Supervisor([spec("node", HANGS_ON_STOP, stack_dump_signal=signal.SIGUSR1 if dumps_stacks else None)],
+                     log_dir=tmp_path, stop_timeout_s=0.5)
     sups.append(sup)
     sup.start()
     wait_ready(tmp_path, "node")

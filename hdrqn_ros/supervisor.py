@@ -214,18 +214,15 @@ class Supervisor:
         """Say that ``name`` outlived the SIGINT grace and, if it can, have it print its stacks."""
         if proc.poll() is not None:
             return
-        where = str(self.log_path(name)) if self.log_dir is not None else "its stderr"
+        said = f"[supervisor] {name} did not stop within {self.stop_timeout_s:g} s of SIGINT"
         dump_signal = self.specs[name].stack_dump_signal
         if dump_signal is not None:
             try:
                 os.kill(proc.pid, dump_signal)
             except ProcessLookupError:
                 return
-            print(f"[supervisor] {name} did not stop within {self.stop_timeout_s:g} s of SIGINT; its threads' "
-                  f"stacks are in {where}; sending SIGTERM", file=sys.stderr)
-        else:
-            print(f"[supervisor] {name} did not stop within {self.stop_timeout_s:g} s of SIGINT; sending SIGTERM",
-                  file=sys.stderr)
+            said += f"; its threads' stacks are in {self.log_path(name) if self.log_dir is not None else 'its stderr'}"
+        print(f"{said}; sending SIGTERM", file=sys.stderr)
 
     def log_path(self, name: str) -> Path:
         """The log file of process ``name`` (needs ``log_dir``)."""

@@ -20,7 +20,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from hdrqn_ros.training.plots import read_csv  # noqa: E402
+from hdrqn_ros.training.plots import draw_mean_band, read_csv  # noqa: E402
 
 DOCS = Path(__file__).resolve().parents[1]
 ORDER = ["hdrqn-v2", "hdrqn-v1", "hdqn", "drqn", "dqn"]
@@ -37,9 +37,7 @@ def main() -> None:
         n = min(len(t["episode"]) for t in tables)
         success = np.stack([t["success"][:n] for t in tables])
         x = tables[0]["episode"][:n]
-        ax.plot(x, success.mean(0), "o-", ms=3, color=f"C{i}", label=f"{algo} (n={len(tables)})")
-        if len(tables) > 1:
-            ax.fill_between(x, success.min(0), success.max(0), color=f"C{i}", alpha=0.2)
+        draw_mean_band(ax, x, success, f"C{i}", f"{algo} (n={len(tables)})", "o-", ms=3)
     ax.set_xlabel("episode")
     ax.set_ylabel("greedy ordered success (100 episodes)")
     ax.set_ylim(-0.02, 1.02)

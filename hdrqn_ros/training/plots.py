@@ -33,6 +33,14 @@ def moving_average(x: np.ndarray, window: int) -> np.ndarray:
     return (c[idx] - c[lo]) / (idx - lo)
 
 
+def draw_mean_band(ax, x: np.ndarray, curves: np.ndarray, color: str, label: str, fmt: str = "-", **kw) -> None:
+    """Draw ``curves`` (runs x points, over ``x``) on ``ax`` as their mean line, with a min-max
+    band when there are several runs (seeds)."""
+    ax.plot(x, curves.mean(0), fmt, color=color, label=label, **kw)
+    if len(curves) > 1:
+        ax.fill_between(x, curves.min(0), curves.max(0), color=color, alpha=0.2)
+
+
 def run_label(run: Path) -> str:
     cfg = run / "config.yaml"
     if cfg.exists():
@@ -72,10 +80,7 @@ def plot_runs(runs: list[Path], out: Path, window: int = 200, labels: dict[str, 
             skip = min(window // 10, n - 1)  # the first few averages are over a handful of episodes
             curves = np.stack([moving_average(t[key][:n], window)[skip:] for t in tables])
             x = tables[0]["episode"][skip:n]
-            color = f"C{i}"
-            ax.plot(x, curves.mean(0), color=color, label=f"{label} (n={len(tables)})")
-            if len(tables) > 1:
-                ax.fill_between(x, curves.min(0), curves.max(0), color=color, alpha=0.2)
+            draw_mean_band(ax, x, curves, f"C{i}", f"{label} (n={len(tables)})")
         ax.set_title(panel)
         ax.set_xlabel("episode")
         ax.grid(alpha=0.3)
@@ -84,9 +89,7 @@ def plot_runs(runs: list[Path], out: Path, window: int = 200, labels: dict[str, 
         n = min(len(t["episode"]) for t in tables)
         curves = np.stack([t["success"][:n] for t in tables])
         x = tables[0]["episode"][:n]
-        ax.plot(x, curves.mean(0), "o-", color=f"C{list(groups).index(label)}", label=label)
-        if len(tables) > 1:
-            ax.fill_between(x, curves.min(0), curves.max(0), color=f"C{list(groups).index(label)}", alpha=0.2)
+        draw_mean_band(ax, x, curves, f"C{list(groups).index(label)}", label, "o-")
     ax.set_title("greedy evaluation: success ratio")
     ax.set_xlabel("episode")
     ax.set_ylim(-0.02, 1.02)
@@ -123,9 +126,7 @@ def plot_success_ratio(groups: dict[str, list[Path]], out: Path, window: int = 2
         n = min(len(t["episode"]) for t in tables)
         curves = np.stack([moving_average(t["success"][:n], window) for t in tables])
         x = tables[0]["episode"][:n]
-        ax.plot(x, curves.mean(0), color=f"C{i}", label=f"{label} (n={len(tables)})")
-        if len(tables) > 1:
-            ax.fill_between(x, curves.min(0), curves.max(0), color=f"C{i}", alpha=0.2)
+        draw_mean_band(ax, x, curves, f"C{i}", f"{label} (n={len(tables)})")
     if phase_end:
         ax.axvline(phase_end, color="grey", ls="--", lw=1)
         ax.annotate(" end of phase 1", (phase_end, 0.95), xycoords=("data", "axes fraction"), fontsize=8, color="grey")

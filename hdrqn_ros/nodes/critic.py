@@ -13,46 +13,51 @@ judges every environment of the batch and publishes one ``critic`` record per en
 from __future__ import annotations
 
 import numpy as np
+from rclpy.node import Node
+from std_msgs.msg import Float64MultiArray, Int64MultiArray
 
 from hdrqn_ros.envs.registration import make_batch
-from hdrqn_ros.middleware import Middleware
+from hdrqn_ros.nodes.graph_parameters import ENV_PARAMETERS, MAX_MESSAGE_BYTES, NUM_ENVS, env_kwargs
+from hdrqn_ros.nodes.node_logger import python_logger
+from hdrqn_ros.nodes.parameters import Param, declare_parameters
+from hdrqn_ros.nodes.process import run_node
+from hdrqn_ros.nodes.qos import STEP_QOS
+from hdrqn_ros.nodes.ros_messages import ROS_MESSAGES, bounded_subscription
 from hdrqn_ros.protocol import wire
-from hdrqn_ros.middleware import ParameterRule
-from hdrqn_ros.nodes.common import (ENV_DEFAULTS, ENV_RULES, NodeConfigError, check_num_envs, env_kwargs,
-                                    live_parameters, run_node)
 from hdrqn_ros.protocol.follower import StepFollower, done
 
-PARAMETERS = {**ENV_DEFAULTS, "num_envs": 1, "option_timeout": 0.0}
-"""What the critic declares: the environment's settings, the group's batch size and
-``option_timeout``: an option not done this many seconds (of step keys, i.e. ROS time on a
+PARAMETERS = {**ENV_PARAMETERS, **NUM_ENVS, **MAX_MESSAGE_BYTES, "option_timeout": Param(
+    0.0, "seconds (of step keys) after which an option not yet done ends without reward (0: never)", live=True,
+    low=0.0, high=1e9)}
+"""``option_timeout``: an option not done this many seconds (of step keys, i.e. ROS time on a
 robot) after it started ends there (0: never; a robot whose navigator cannot reach a place).
 A robot setting: the simulator's ``environment`` node sends ``subgoal_images`` only at
 decision points, which an option cut short elsewhere would wait for."""
 
-RULES = {**ENV_RULES, "option_timeout": ParameterRule(
-    "seconds (of step keys) after which an option not yet done ends without reward (0: never)", live=True, low=0.0,
-    high=1e9)}
 
+class CriticNode(Node, StepFollower):
+    """The internal critic of one environment group."""
 
-class CriticNode(StepFollower):
-    def __init__(self, mw: Middleware):
-        node = mw.create_node("critic")
-        params = node.declare_parameters(PARAMETERS, rules=RULES)
-        n = check_num_envs(params["num_envs"])
-        if not params["option_timeout"] >= 0:
-            raise NodeConfigError(f"option_timeout must be >= 0 s (0: never), got {params['option_timeout']!r}")
+    def __init__(self, **kwargs):
+        Node.__init__(self, "critic", **kwargs)
+        params = declare_parameters(self, PARAMETERS, apply=self._apply)
+        StepFollower.__init__(self, logger=python_logger(self), num_envs=params["num_envs"])
         self.timeout_ns = int(round(params["option_timeout"] * 1e9))
-        live_parameters(node, params, RULES, lambda name, value: setattr(self, "timeout_ns", int(round(value * 1e9))))
-        super().__init__(node, num_envs=n)
         probe = make_batch(params["env"], 1, **env_kwargs(params["env"], params["view"]))
         self.critic, self.num_subgoals = probe.critic(), probe.num_subgoals
-        self.pub = node.create_publisher(wire.FLOATS, wire.CRITIC, wire.STEP_QOS)
-        node.create_subscription(wire.FLOATS, wire.ENV_STEP, self.on_env_step, wire.STEP_QOS)
-        node.create_subscription(wire.INTS, wire.SUBGOAL, self._on_subgoal, wire.STEP_QOS)
-        self.option_subgoal = np.full(n, -1)  # each environment's current option's subgoal (-1: unknown)
-        self.choice_at = np.zeros(n, np.int64)  # key at which we announced option_done: its subgoal is the next option's
+        self.pub = self.create_publisher(Float64MultiArray, wire.CRITIC, STEP_QOS)
+        limit = params["max_message_bytes"]
+        bounded_subscription(self, Float64MultiArray, wire.ENV_STEP, self.on_env_step, STEP_QOS, limit, self.logger)
+        bounded_subscription(self, Int64MultiArray, wire.SUBGOAL, self._on_subgoal, STEP_QOS, limit, self.logger)
+        self.create_timer(1.0, self.check_stall)
+        self.option_subgoal = np.full(self.num_envs, -1)  # each environment's option's subgoal (-1: unknown)
+        self.choice_at = np.zeros(self.num_envs, np.int64)  # key at which we announced option_done
 
-    def _on_subgoal(self, msg) -> None:
+    def _apply(self, name: str, value) -> None:
+        if name == "option_timeout":
+            self.timeout_ns = int(round(value * 1e9))
+
+    def _on_subgoal(self, msg: Int64MultiArray) -> None:
         chosen = self.decode(wire.SUBGOAL, lambda: wire.read_subgoals(msg, self.num_subgoals, self.num_envs))
         if chosen is not None:
             self.put(wire.SUBGOAL, *chosen)
@@ -81,7 +86,7 @@ class CriticNode(StepFollower):
             if verdict[3] and not done(row):
                 self.choice_at[i], self.option_subgoal[i] = key, -1
             values.append(verdict)
-        return [(self.pub, wire.make_records(self.node, wire.FLOATS, wire.CRITIC_FIELDS, values))]
+        return [(self.pub, wire.make_records(ROS_MESSAGES, wire.FLOATS, wire.CRITIC_FIELDS, values))]
 
     def reset(self) -> None:
         super().reset()
@@ -89,7 +94,7 @@ class CriticNode(StepFollower):
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_node(lambda mw: CriticNode(mw), argv)
+    return run_node(CriticNode, argv)
 
 
 if __name__ == "__main__":

@@ -78,7 +78,11 @@ class Decoder:
             return None
 
     def _name(self, topic: str) -> str:
-        return self.node.resolve_topic(topic) if self.node is not None else topic
+        """``topic``'s full name: resolved by the node (an rclpy node's ``resolve_topic_name``)."""
+        if self.node is not None:
+            return self.node.resolve_topic(topic)
+        resolve = getattr(self, "resolve_topic_name", None)
+        return resolve(topic) if resolve is not None else topic
 
     @property
     def rejected(self) -> int:

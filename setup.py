@@ -4,7 +4,11 @@ from glob import glob
 from setuptools import find_packages, setup
 
 PACKAGE = "hdrqn_ros"
-ROS_WHEELS = ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-std-msgs", "ros-jazzy-sensor-msgs", "ros-jazzy-geometry-msgs",
+ROS_WHEELS = ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-rcl-interfaces", "ros-jazzy-builtin-interfaces",
+              "ros-jazzy-ament-index-python", "ros-jazzy-std-msgs", "ros-jazzy-std-srvs", "ros-jazzy-sensor-msgs",
+              "ros-jazzy-geometry-msgs", "ros-jazzy-nav-msgs", "ros-jazzy-rosgraph-msgs", "ros-jazzy-diagnostic-msgs",
+              "ros-jazzy-visualization-msgs"]
+"""The ``ros`` extra: exactly the ROS packages hdrqn_ros imports (test/test_packaging.py)."""", "ros-jazzy-std-msgs", "ros-jazzy-sensor-msgs", "ros-jazzy-geometry-msgs",
               "ros-jazzy-nav-msgs", "ros-jazzy-rosgraph-msgs", "ros-jazzy-std-srvs", "ros-jazzy-diagnostic-msgs",
               "ros-jazzy-visualization-msgs"]
 
@@ -35,7 +39,6 @@ setup(
         "matplotlib>=3.7",
         "tensorboard>=2.14",
         "torch>=2.1",
-        "cyclonedds>=0.10.5",
         "rosbags>=0.10",
         "safetensors>=0.4",
         "mcap>=1.1",
@@ -57,14 +60,14 @@ setup(
     entry_points={
         "console_scripts": [
             "hdrqn = hdrqn_ros.cli:main",
-            "environment = hdrqn_ros.nodes.environment:main",
-            "critic = hdrqn_ros.nodes.critic:main",
-            "meta_controller = hdrqn_ros.nodes.controllers:main_meta",
-            "sub_controller = hdrqn_ros.nodes.controllers:main_sub",
-            "learner = hdrqn_ros.nodes.learner:main",
-            "player = hdrqn_ros.nodes.player:main",
-            "robot_environment = hdrqn_ros.nodes.robot_environment:main",
-            "loopback_robot = hdrqn_ros.nodes.loopback_robot:main",
+            "environment = hdrqn_ros.nodes.executables:environment",
+            "critic = hdrqn_ros.nodes.executables:critic",
+            "meta_controller = hdrqn_ros.nodes.executables:meta_controller",
+            "sub_controller = hdrqn_ros.nodes.executables:sub_controller",
+            "learner = hdrqn_ros.nodes.executables:learner",
+            "player = hdrqn_ros.nodes.executables:player",
+            "robot_environment = hdrqn_ros.nodes.executables:robot_environment",
+            "loopback_robot = hdrqn_ros.nodes.executables:loopback_robot",
         ],
     },
 )

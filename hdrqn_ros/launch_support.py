@@ -4,15 +4,20 @@ needs ROS 2's ``launch`` only inside the functions that take a launch context.""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 import yaml
 
+from hdrqn_ros.deploy.specs import ALGO_SPECS
+
 PACKAGE = "hdrqn_ros"
-HIERARCHICAL_ALGOS = ("hdrqn-v2", "hdrqn-v1", "hdqn")
-"""Agents with a meta-controller and an internal critic (``ALGO_SPECS[algo].hierarchical``)."""
-ALGOS = HIERARCHICAL_ALGOS + ("drqn", "dqn")
-DEFAULT_ALGO = "hdrqn-v2"
-"""The nodes' own default ``algo`` (``hdrqn_ros.nodes.common.ENV_DEFAULTS``)."""
+ALGOS = tuple(ALGO_SPECS)
+HIERARCHICAL_ALGOS = tuple(algo for algo, spec in ALGO_SPECS.items() if spec.hierarchical)
+"""Agents with a meta-controller and an internal critic."""
+DEFAULT_ALGO = ALGOS[0]
+"""The nodes' own default ``algo`` (``hdrqn_ros.nodes.graph_parameters.ENV_PARAMETERS``)."""
+NOT_RESTARTED = {0: "it finished or was stopped", 2: "a configuration error, which a restart cannot fix"}
+"""Node exit codes a launch file does not restart after, and what they mean; any other exit is a crash."""
 SHARED_ARGS = ("algo", "env", "view")
 """String launch arguments that, when not empty, override the ``/**`` parameter of that name."""
 
@@ -73,3 +78,23 @@ def float_arg(context, name: str) -> float:
         return float(text)
     except ValueError:
         raise RuntimeError(f"launch argument {name} must be a number, got {text!r}") from None
+
+
+def restarted_node(make_node: Callable[[], object], delay_s: float) -> list:
+    """Launch actions: ``make_node()`` (a ``launch_ros`` Node, made anew for each start) and,
+    each time it crashes (an exit code not in :data:`NOT_RESTARTED`), a new one after
+    ``delay_s``; an exit in :data:`NOT_RESTARTED` is logged and left alone."""
+    from launch.actions import LogInfo, RegisterEventHandler, TimerAction
+    from launch.event_handlers import OnProcessExit
+
+    node = make_node()
+
+    def on_exit(event, context):
+        code = event.returncode
+        if code in NOT_RESTARTED or context.is_shutdown:
+            why = NOT_RESTARTED.get(code, "the launch is shutting down")
+            return [LogInfo(msg=f"{event.process_name} exited with {code} ({why}): not restarting it")]
+        return [LogInfo(msg=f"{event.process_name} exited with {code}: restarting it in {delay_s:g} s"),
+                TimerAction(period=delay_s, actions=restarted_node(make_node, delay_s))]
+
+    return [node, RegisterEventHandler(OnProcessExit(target_action=node, on_exit=on_exit))]

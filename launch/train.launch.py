@@ -20,7 +20,8 @@ When the learner exits, the whole launch is shut down: always with ``respawn:=fa
 with ``respawn:=true`` (default) when it exits with 0 (training finished, or it was
 stopped) or 2 (bad parameters, which a restart cannot fix). Any other exit (a crash, an
 exception in training) restarts it after ``respawn_delay`` and it resumes from
-``run_dir``'s last checkpoint, like the other nodes, which are restarted after any exit.
+``run_dir``'s last checkpoint. The other nodes are restarted, with ``respawn:=true``, after a
+crash; one that exits with 0 or 2 (bad parameters, or a ROS package it needs is missing) is not.
 """
 from __future__ import annotations
 
@@ -31,13 +32,10 @@ from launch.events import Shutdown
 from launch_ros.actions import Node
 
 from hdrqn_ros.protocol.wire import group_namespaces
-from hdrqn_ros.launch_support import (ALGOS, DEFAULT_ALGO, HIERARCHICAL_ALGOS, PACKAGE, SHARED_ARGS, arg, bool_arg,
-                                      int_arg, share_dir, shared_file_parameters)
+from hdrqn_ros.launch_support import (ALGOS, DEFAULT_ALGO, HIERARCHICAL_ALGOS, NOT_RESTARTED, PACKAGE, SHARED_ARGS,
+                                      arg, bool_arg, int_arg, restarted_node, share_dir, shared_file_parameters)
 
 RESPAWN_DELAY_S = 2.0
-LEARNER_FINAL_EXIT_CODES = (0, 2)
-"""Learner exit codes that end the launch even with respawn: finished or stopped (0),
-bad parameters / config / checkpoint (2)."""
 
 
 def _graph(context):
@@ -61,19 +59,17 @@ def _graph(context):
     num_envs = int_arg(context, "num_envs", 1)
     for i, ns in enumerate(namespaces):
         group = {**shared, "seed": seed + 1000 * i, **({"num_envs": num_envs} if num_envs is not None else {})}
-        actions.append(Node(package=PACKAGE, executable="environment", name="environment", namespace=ns,
-                            parameters=[params_file, {**group, "wait_for_learner": True}],
-                            respawn=respawn, respawn_delay=RESPAWN_DELAY_S, output="screen"))
-        if hierarchical:
-            actions.append(Node(package=PACKAGE, executable="critic", name="critic", namespace=ns,
-                                parameters=[params_file, group],
-                                respawn=respawn, respawn_delay=RESPAWN_DELAY_S, output="screen"))
-            actions.append(Node(package=PACKAGE, executable="meta_controller", name="meta_controller",
-                                namespace=ns, parameters=[params_file, group],
-                                respawn=respawn, respawn_delay=RESPAWN_DELAY_S, output="screen"))
-        actions.append(Node(package=PACKAGE, executable="sub_controller", name="sub_controller", namespace=ns,
-                            parameters=[params_file, group],
-                            respawn=respawn, respawn_delay=RESPAWN_DELAY_S, output="screen"))
+        nodes = [("environment", {**group, "wait_for_learner": True}), ("critic", group),
+                 ("meta_controller", group), ("sub_controller", group)]
+        for name, parameters in nodes:
+            if name in ("critic", "meta_controller") and not hierarchical:
+                continue
+
+            def make_node(name=name, ns=ns, parameters=parameters):
+                return Node(package=PACKAGE, executable=name, name=name, namespace=ns,
+                            parameters=[params_file, parameters], output="screen")
+
+            actions.extend(restarted_node(make_node, RESPAWN_DELAY_S) if respawn else [make_node()])
 
     learner_params = {**shared, "seed": seed, "groups": namespaces, "resume": True}
     episodes = int_arg(context, "episodes", 1)
@@ -88,7 +84,7 @@ def _graph(context):
     actions.append(learner)
 
     def on_learner_exit(event, _context):
-        if respawn and event.returncode not in LEARNER_FINAL_EXIT_CODES:
+        if respawn and event.returncode not in NOT_RESTARTED:
             return [LogInfo(msg=f"learner exited with {event.returncode}: restarting it (resume from run_dir)")]
         return [LogInfo(msg=f"learner exited with {event.returncode}: shutting the training graph down"),
                 EmitEvent(event=Shutdown(reason=f"learner exited with {event.returncode}"))]

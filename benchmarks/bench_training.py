@@ -49,7 +49,7 @@ def _config(num_envs: int):
 def _prefill(agent, cfg, episodes: int = 64) -> None:
     """Fill both replays with random-policy episodes so updates sample real data."""
     rollout = Rollout(make_batch(ENV, 16, **cfg.env_kwargs), agent, seed=99)
-    builder = EpisodeBuilder(16, True, cfg.sub.gamma, cfg.meta.gamma)
+    builder = EpisodeBuilder(16, True)
     rng = np.random.default_rng(0)
     added = 0
     while added < episodes:
@@ -97,7 +97,7 @@ def naive_update(ctrl, optimizer) -> float:
     with torch.no_grad():
         a2 = _lstm_q(ctrl.online, x[:, 1:])[0].argmax(-1, keepdim=True)
         v2 = _lstm_q(ctrl.target, x[:, 1:])[0].gather(-1, a2).squeeze(-1)
-        y = f["reward"] + f["discount"] * (~f["terminal"]).float() * v2
+        y = f["reward"] + ctrl.cfg.gamma * (~f["terminal"]).float() * v2
     mask = torch.as_tensor(batch.loss_mask).float()
     loss = ((q - y).pow(2) * mask).sum() / mask.sum()
     optimizer.zero_grad()

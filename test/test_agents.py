@@ -1,5 +1,6 @@
-"""The learning core's maths: Double DQN targets, loss on the last n/2 steps, soft target
-updates, and which networks each algorithm is built from."""
+"""The learning core's maths: Double DQN targets (discounted with the gamma configured at
+update time), loss on the last n/2 steps, soft target updates, what an update reports, and
+which networks each algorithm is built from."""
 import numpy as np
 import pytest
 import torch
@@ -33,10 +34,11 @@ def _one_hot(idx, n):
     return np.eye(n, dtype=np.float32)[idx]
 
 
-def _controller(seq_len=4, gamma=0.9, tau=0.5, loss="mse"):
+def _controller(seq_len=4, gamma=0.9, tau=0.5, loss="mse", grad_clip=None, smdp_discount=False):
     cfg = ControllerConfig(batch_size=1, seq_len=seq_len, replay_episodes=10, gamma=gamma, tau=tau, lr=1e-3,
-                           loss=loss, grad_clip=None)
-    return Controller("test", LinearQ(6, 2), cfg, build_input=lambda b: b.frames, seed=0)
+                           loss=loss, grad_clip=grad_clip)
+    return Controller("test", LinearQ(6, 2), cfg, build_input=lambda b: b.frames, seed=0,
+                      smdp_discount=smdp_discount)
 
 
 def _episode():
@@ -45,12 +47,11 @@ def _episode():
     return Episode(frames=frames, fields={
         "action": np.array([0, 1, 0, 1], np.uint8),
         "reward": np.array([100.0, -100.0, 0.5, 1.0], np.float32),
-        "terminal": np.array([False, False, False, True]),
-        "discount": np.full(4, 0.9, np.float32)})
+        "terminal": np.array([False, False, False, True])})
 
 
 def _sampled_update(ctrl):
-    """Run one update and return (loss, the window it trained on)."""
+    """Run one update and return (its loss, the window it trained on)."""
     seen = {}
     sample = ctrl.replay.sample
 
@@ -59,12 +60,12 @@ def _sampled_update(ctrl):
         return seen["batch"]
 
     ctrl.replay.sample = keep
-    loss = ctrl.update()
+    loss = float(ctrl.update().td_loss)
     ctrl.replay.sample = sample
     return loss, seen["batch"]
 
 
-def _expected_loss(batch, online, target, episode, td_error):
+def _expected_loss(batch, online, target, episode, td_error, gamma=0.9):
     """Hand-computed Double DQN loss on the window's loss steps (frame t = state t)."""
     f = episode.fields
     steps = batch.start[0] + np.flatnonzero(batch.loss_mask[0])
@@ -76,7 +77,7 @@ def _expected_loss(batch, online, target, episode, td_error):
             y = f["reward"][t]
         else:
             a_next = online[t + 1].argmax()  # online network picks the next action ...
-            y = f["reward"][t] + f["discount"][t] * target[t + 1, a_next]  # ... the target values it
+            y = f["reward"][t] + gamma * target[t + 1, a_next]  # ... the target values it
         errors.append(td_error(q - y))
     return np.mean(errors)
 
@@ -98,6 +99,56 @@ def test_double_dqn_loss_matches_hand_computation(loss):
         starts.add(int(batch.start[0]))
         assert value == pytest.approx(_expected_loss(batch, online, target, episode, td_error), rel=1e-5)
     assert len(starts) > 1  # several windows checked, the terminal step among them
+
+
+def _update_on_step(ctrl, step, online, target):
+    """One update on the window of ``step`` alone (seq_len 1) with Q-values set by hand."""
+    batch = ctrl.replay.sample_transitions(1, 1, ctrl.build_input, rng=_ScriptedStarts([0], [step]))
+    ctrl.replay.sample_transitions = lambda *args, **kwargs: batch
+    ctrl.online.w.data = torch.tensor(online)
+    ctrl.target.w.data = torch.tensor(target)
+    return ctrl.update()
+
+
+HAND_ONLINE = np.array([[0, 0], [0, 3], [1, 4], [0, 0], [0, 0], [0, 0]], np.float32)  # argmax at state 2: 1
+HAND_TARGET = np.array([[0, 0], [0, 0], [9, 5], [0, 0], [0, 0], [0, 0]], np.float32)  # ... valued 5, not max 9
+
+
+@pytest.mark.parametrize("grad_clip", [None, 1.0])
+def test_the_target_discounts_with_the_gamma_configured_at_update_time(grad_clip):
+    """Replay stores no discount: episodes stored while gamma was 0.9, then learned from with
+    gamma 0.99 (``--resume --set sub.gamma=0.99``), bootstrap with 0.99. Step 1 of
+    :func:`_episode`: Q(1, a=1) = 3, r = -100, the online net picks action 1 at state 2 and
+    the target net values it 5: y = -100 + 0.99 * 5. The update reports that y, Q(s, a), the
+    loss (3 - y)^2 and the gradient norm before clipping, |dL/dW[1, 1]| = 2 |3 - y|."""
+    ctrl = _controller(seq_len=1, gamma=0.9, grad_clip=grad_clip)
+    ctrl.replay.add(_episode())
+    ctrl.cfg = ctrl.cfg.model_copy(update={"gamma": 0.99})
+    stats = _update_on_step(ctrl, 1, HAND_ONLINE, HAND_TARGET)
+    y = -100.0 + 0.99 * 5.0
+    assert float(stats.target) == pytest.approx(y, rel=1e-6)
+    assert float(stats.q_taken) == pytest.approx(3.0)
+    assert float(stats.td_loss) == pytest.approx((3.0 - y) ** 2, rel=1e-6)
+    assert float(stats.grad_norm) == pytest.approx(2 * abs(3.0 - y), rel=1e-6)
+    assert all(v.dim() == 0 and not v.requires_grad for v in stats)
+
+
+@pytest.mark.parametrize("smdp_discount", [False, True])
+def test_the_meta_target_discounts_an_option_of_k_steps_by_gamma_or_gamma_to_the_k(smdp_discount):
+    """The meta-controller's replay stores each option's length k (``option_steps``); its
+    target discounts by gamma (Algorithm 3) or, with ``smdp_discount``, gamma ** k (eq. 3.5)."""
+    ctrl = _controller(seq_len=1, gamma=0.9, smdp_discount=smdp_discount)
+    episode = _episode()
+    episode.fields["option_steps"] = np.array([2, 5, 1, 3], np.int32)
+    ctrl.replay.add(episode)
+    stats = _update_on_step(ctrl, 1, HAND_ONLINE, HAND_TARGET)  # the option of step 1 lasted 5 steps
+    assert float(stats.target) == pytest.approx(-100.0 + (0.9 ** 5 if smdp_discount else 0.9) * 5.0, rel=1e-6)
+
+
+def test_smdp_discount_reaches_the_meta_controller_only():
+    for smdp_discount in (False, True):
+        agent = Agent(build_config([], smdp_discount=smdp_discount), num_actions=4, num_subgoals=2)
+        assert (agent.meta.smdp_discount, agent.sub.smdp_discount) == (smdp_discount, False)
 
 
 def test_soft_target_update_is_tau_interpolation():
@@ -213,7 +264,7 @@ def _lstm_episode(rng, t, features=8, actions=3):
         "action": rng.integers(0, actions, size=t).astype(np.uint8),
         "reward": rng.normal(size=t).astype(np.float32),
         "terminal": np.arange(t) == t - 1,
-        "discount": (0.99 ** rng.integers(1, 12, size=t)).astype(np.float32),  # SMDP gamma**k
+        "option_steps": rng.integers(1, 12, size=t).astype(np.int32),  # k of the SMDP's gamma**k
         "next_invalid": np.full(t, -1, np.int8)})
 
 
@@ -233,13 +284,13 @@ def test_double_dqn_on_a_real_lstm_net_matches_hand_computation(loss, with_inval
     """The update's loss on a real LSTM Q-network (the hDRQNv2 meta-controller's MLP+LSTM
     +dueling net), against a target computed by hand, step by step, per window: the online
     net picks argmax_a' Q(o_{t+1}, a') (without the next step's invalid choice), the target
-    net values it, y = r + discount * (1 - terminal) * value, and only the loss-mask steps
-    count."""
+    net values it, y = r + gamma**k * (1 - terminal) * value (``smdp_discount``, k the
+    option's steps), and only the loss-mask steps count."""
     from hdrqn_ros.agents.networks import make_state_qnet
 
     torch.manual_seed(5)
     cfg = ControllerConfig(batch_size=4, seq_len=4, replay_episodes=10, lr=1e-4, loss=loss, grad_clip=None)
-    ctrl = Controller("meta", make_state_qnet(8, 3), cfg, build_input=lambda b: b.frames, seed=0)
+    ctrl = Controller("meta", make_state_qnet(8, 3), cfg, build_input=lambda b: b.frames, seed=0, smdp_discount=True)
     with torch.no_grad():  # a target net that disagrees with the online one
         for p in ctrl.target.parameters():
             p.add_(torch.randn_like(p) * 0.2)
@@ -268,9 +319,10 @@ def test_double_dqn_on_a_real_lstm_net_matches_hand_computation(loss, with_inval
             a_star = int(q_next.argmax())  # the online net picks ...
             value = target[i][t + 1][a_star]  # ... the target net values
             keep = 0.0 if f["terminal"][i, t] else 1.0
-            y = f["reward"][i, t] + f["discount"][i, t] * keep * value
+            discount = cfg.gamma ** f["option_steps"][i, t]
+            y = f["reward"][i, t] + discount * keep * value
             vanilla.append(online[i][t, f["action"][i, t]]
-                           - (f["reward"][i, t] + f["discount"][i, t] * keep * target[i][t + 1].max()))
+                           - (f["reward"][i, t] + discount * keep * target[i][t + 1].max()))
             differs += a_star != int(target[i][t + 1].argmax())
             errors.append(online[i][t, f["action"][i, t]] - y)
 
@@ -283,7 +335,7 @@ def test_double_dqn_on_a_real_lstm_net_matches_hand_computation(loss, with_inval
     assert differs >= 2 and f["terminal"][batch.loss_mask].sum() == 2  # the test can tell the variants apart
 
     ctrl.replay.sample = lambda *args, **kwargs: batch
-    assert ctrl.update() == pytest.approx(expected, rel=1e-5)
+    assert float(ctrl.update().td_loss) == pytest.approx(expected, rel=1e-5)
 
 
 # Learning rate and discount of each controller, per algorithm, as configured today
@@ -301,9 +353,6 @@ LR_GAMMA = {  # algo: ((sub or flat lr, gamma), (meta lr, meta gamma) or None); 
 
 
 def test_every_learning_rate_and_discount_is_pinned(tmp_path):
-    import logging
-
-    from hdrqn_ros.protocol.assembly import EnvAssembler, TransitionAssembler
     from hdrqn_ros.training.trainer import Trainer
 
     assert set(LR_GAMMA) == set(ALGO_SPECS)
@@ -316,13 +365,6 @@ def test_every_learning_rate_and_discount_is_pinned(tmp_path):
         for ctrl, want in ((agent.sub, sub), (agent.meta, meta)):
             if ctrl is not None:  # what Adam really steps with
                 assert [g["lr"] for g in ctrl.optimizer.param_groups] == [want[0]], (algo, ctrl.name)
-        # the discounts stored with each transition: in-process trainer and node graph learner
-        assert trainer.builder.sub_gamma == np.float32(sub[1]), algo
-        group = TransitionAssembler("/", cfg, 2, print, logger=logging.getLogger("test"))
-        _, _, sub_gamma, meta_gamma, _ = EnvAssembler(group, 0).builder_args
-        assert sub_gamma == sub[1], algo
-        if meta is not None:
-            assert trainer.builder.meta_gamma == meta_gamma == meta[1], algo
 
 
 def _reference_q(net, x):
@@ -357,7 +399,7 @@ def test_the_fast_update_equals_a_straightforward_one(role):
     cfg = build_config([], learning_starts=0, sub={"grad_clip": None}, meta={"grad_clip": None})
     agent = build_agent(cfg)
     rollout = Rollout(make_batch(cfg.env, 8, **cfg.env_kwargs), agent, seed=4)
-    builder, rng, added = EpisodeBuilder(8, True, cfg.sub.gamma, cfg.meta.gamma), np.random.default_rng(0), 0
+    builder, rng, added = EpisodeBuilder(8, True), np.random.default_rng(0), 0
     while added < 12:
         for episode in builder.add(rollout.step(1.0, 1.0, rng)):
             agent.sub.replay.add(episode.sub)
@@ -377,13 +419,13 @@ def test_the_fast_update_equals_a_straightforward_one(role):
         if batch.next_invalid is not None:
             q_next = q_next.masked_fill(torch.arange(q.shape[-1]) == batch.next_invalid.unsqueeze(-1), float("-inf"))
         value = _reference_q(target, batch.obs)[:, 1:].gather(-1, q_next.argmax(-1, keepdim=True)).squeeze(-1)
-        y = batch.reward + batch.discount * (1 - batch.terminal) * value
+        y = batch.reward + ctrl.cfg.gamma * (1 - batch.terminal) * value
     mask = batch.mask.float()
     expected = ((q_taken - y).pow(2) * mask).sum() / mask.sum()
     expected.backward()
 
     ctrl.replay.sample_transitions = lambda *args, **kwargs: batch
-    assert ctrl.update() == pytest.approx(expected.item(), rel=1e-5, abs=1e-7)
+    assert float(ctrl.update().td_loss) == pytest.approx(expected.item(), rel=1e-5, abs=1e-7)
     assert expected.item() > 1e-4
     for (name, fast), slow in zip(ctrl.online.named_parameters(), online.parameters()):
         scale = max(1.0, slow.grad.abs().max().item())

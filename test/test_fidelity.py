@@ -68,7 +68,7 @@ def test_v2_meta_frames_are_the_sub_lstm_state_at_each_option_end(meta_state):
         return meta_act(x, state)
 
     agent.meta.act = spy
-    builder = EpisodeBuilder(2, True, cfg.sub.gamma, cfg.meta.gamma)
+    builder = EpisodeBuilder(2, True)
     rng = np.random.default_rng(0)
     finished = []
     while len(finished) < 6:

@@ -360,7 +360,7 @@ def test_a_death_is_terminal_for_the_sub_controller_in_both_paths(tmp_path):
     Scripted(agent.meta, [mz.KEY_SUBGOAL] * 5)  # an option the fall never reaches
     batch = make_batch(ENV_ID, 1, **cfg.env_kwargs)
     rollout = Rollout(batch, agent, seed=0, record_subgoal_images=True)
-    builder = EpisodeBuilder(1, True, cfg.sub.gamma, cfg.meta.gamma)
+    builder = EpisodeBuilder(1, True)
     sink = TransitionRecorder(tmp_path / "bag", cfg, 1)
     records, finished, lives = [], [], []
     rng = np.random.default_rng(0)

@@ -328,13 +328,13 @@ class _ScriptedRng:
         return self.episodes if size is not None else next(self.starts)
 
 
-def _typed_episode(next_invalid=True):
+def _typed_episode(meta=True):
     fields = {"action": np.array([2, 0, 1, 3, 1], np.uint8),
               "reward": np.array([0.5, 1.0, 0.0, -1.0, 2.0], np.float32),
-              "terminal": np.array([False, False, False, False, True]),
-              "discount": np.array([0.9, 0.81, 0.9, 0.729, 0.9], np.float32)}
-    if next_invalid:
+              "terminal": np.array([False, False, False, False, True])}
+    if meta:
         fields["next_invalid"] = np.array([-1, 2, -1, 0, 1], np.int8)
+        fields["option_steps"] = np.array([1, 2, 1, 3, 1], np.int32)
     frames = np.arange(6, dtype=np.float32)[:, None] * np.array([1.0, 10.0], np.float32)  # frame t = (t, 10 t)
     return Episode(frames, fields, segment_starts=np.array([0, 3], np.int32),
                    segment_data={"img": np.array([100, 200], np.float32)})
@@ -354,7 +354,7 @@ def test_sample_transitions_is_a_typed_batch_with_the_stored_values():
 
     b = replay.sample_transitions(2, 3, build_input, rng=_ScriptedRng([0, 0], [1, 3]))
     assert type(b).__name__ == "ReplaySamples" and b._fields == (
-        "obs", "action", "reward", "discount", "terminal", "mask", "next_invalid")
+        "obs", "action", "reward", "terminal", "mask", "next_invalid", "option_steps")
     assert len(built) == 1
     obs = np.zeros((2, 4, 2), np.float32)
     obs[0, :3] = [[101, 110], [102, 120], [103, 130]]  # frames 1..3 + segment 0's 100
@@ -365,15 +365,15 @@ def test_sample_transitions_is_a_typed_batch_with_the_stored_values():
     assert b.obs.dtype == torch.float32
     assert b.action.dtype == torch.int64 and b.action.tolist() == [[0, 1, 0], [3, 1, 0]]
     assert b.reward.dtype == torch.float32 and b.reward.tolist() == [[1.0, 0.0, 0.0], [-1.0, 2.0, 0.0]]
-    assert b.discount.dtype == torch.float32
-    np.testing.assert_array_equal(b.discount.numpy(), np.array([[0.81, 0.9, 0], [0.729, 0.9, 0]], np.float32))
     assert b.terminal.dtype == torch.float32 and b.terminal.tolist() == [[0, 0, 0], [0, 1, 0]]
     assert b.mask.dtype == torch.bool and b.mask.tolist() == [[False, True, False], [True, True, False]]
     assert b.next_invalid.dtype == torch.int64 and b.next_invalid.tolist() == [[2, -1, 0], [0, 1, 0]]
+    assert b.option_steps.dtype == torch.float32 and b.option_steps.tolist() == [[2, 1, 0], [3, 1, 0]]
 
-    flat = EpisodeReplay(4, seed=0)
-    flat.add(_typed_episode(next_invalid=False))
-    assert flat.sample_transitions(3, 2, lambda w: w.frames).next_invalid is None
+    sub = EpisodeReplay(4, seed=0)
+    sub.add(_typed_episode(meta=False))
+    b = sub.sample_transitions(3, 2, lambda w: w.frames)
+    assert b.next_invalid is None and b.option_steps is None
 
 
 @pytest.mark.parametrize("n", [8, 2])

@@ -93,6 +93,66 @@ def test_snapshot_of_another_shape_or_checkpoint_is_refused(tmp_path):
                 tensorboard=False)
 
 
+def _rewrite_as_version1(run_dir, sub_gamma, meta_gamma, smdp_discount):
+    """Rewrite the run's snapshot in version 1's layout (a ``discount`` field, as episodes were
+    stored before the update read gamma: sub gamma; meta gamma, or gamma**k with
+    ``smdp_discount``; no ``option_steps``) and point its checkpoint at it."""
+    from safetensors import safe_open
+    from safetensors.numpy import load_file, save_file
+
+    from hdrqn_ros.hashing import file_sha256
+    from hdrqn_ros.training.checkpoint import save_checkpoint
+
+    (snap,) = snapshots(run_dir)
+    with safe_open(str(snap), framework="numpy") as f:
+        meta = json.loads(f.metadata()["hdrqn_ros"])
+    tensors = load_file(str(snap))
+    for key in [k for k in tensors if k.endswith("/field/action")]:
+        role, prefix = key.split("/")[0], key[: -len("action")]
+        if role == "sub":
+            tensors[prefix + "discount"] = np.full(len(tensors[key]), sub_gamma, np.float32)
+        else:
+            k = tensors.pop(prefix + "option_steps")
+            tensors[prefix + "discount"] = (meta_gamma ** k if smdp_discount else np.full(len(k), meta_gamma)
+                                            ).astype(np.float32)
+    meta["version"] = 1
+    for info in meta["roles"].values():
+        info["fields"] = sorted({*info["fields"], "discount"} - {"option_steps"})
+    save_file(tensors, str(snap), metadata={"hdrqn_ros": json.dumps(meta)})
+    ckpt = run_dir / "checkpoints" / "last.pt"
+    payload = load_checkpoint(ckpt)
+    payload["progress"]["replay"]["sha256"] = file_sha256(snap)
+    save_checkpoint(ckpt, config=payload["config"], agent_state=payload["agent"], progress=payload["progress"])
+
+
+@pytest.mark.parametrize("smdp_discount", [True, False])
+def test_a_version1_snapshot_with_stored_discounts_loads_converted(tmp_path, smdp_discount):
+    """A snapshot written before the discount was read at update time still resumes: the
+    sub-controller's discount column is dropped, the meta-controller's becomes the options'
+    lengths, exactly (round(log(discount) / log(gamma)) with ``smdp_discount``), or 1 where
+    the discount never depended on them."""
+    cfg = tiny(smdp_discount=smdp_discount)
+    trainer = Trainer(cfg, tmp_path, progress=False, tensorboard=False)
+    trainer.run()
+    saved = trainer.replays()
+    steps = np.concatenate([saved["meta"][i].fields["option_steps"] for i in range(len(saved["meta"]))])
+    assert steps.max() > 1  # options of several steps: a conversion to 1 would show
+    _rewrite_as_version1(tmp_path, cfg.sub.gamma, cfg.meta.gamma, smdp_discount)
+    resumed = Learner(tiny(episodes=8, smdp_discount=smdp_discount), tmp_path, resume=True, progress=False,
+                      tensorboard=False)
+    assert resumed.replay_restored
+    assert_same_replay(saved["sub"], resumed.replays()["sub"])
+    if smdp_discount:
+        assert_same_replay(saved["meta"], resumed.replays()["meta"])
+    else:
+        for i in range(len(saved["meta"])):
+            ours = resumed.replays()["meta"][i].fields
+            assert ours["option_steps"].dtype == np.int32 and (ours["option_steps"] == 1).all()
+    updates = resumed.agent.meta.updates
+    resumed.update_once(offline=True)  # the restored replays train
+    assert resumed.agent.meta.updates == updates + 1
+
+
 def test_save_replay_false_writes_no_snapshot_and_resumes_empty(tmp_path):
     Trainer(tiny(episodes=2, save_replay=False), tmp_path, progress=False, tensorboard=False).run()
     assert snapshots(tmp_path) == []

@@ -31,7 +31,7 @@ def test_option_log_and_visits_match_a_replay_in_a_single_env():
     cfg = build_config([], algo="hdrqn-v1", env=ENV)
     agent = build_agent(cfg)
     rollout = Rollout(make_batch(ENV, 2), agent, seed=11)
-    builder = EpisodeBuilder(2, True, cfg.sub.gamma, cfg.meta.gamma)
+    builder = EpisodeBuilder(2, True)
     rng = np.random.default_rng(0)
     episodes = {0: [], 1: []}
     for _ in range(260):

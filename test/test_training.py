@@ -33,7 +33,7 @@ def _record(algo: str, steps: int, seed: int = 7, eps: float = 0.5):
     cfg = build_config([], algo=algo)
     agent = build_agent(cfg)
     rollout = Rollout(make_batch(ENV, 2), agent, seed=seed)
-    builder = EpisodeBuilder(2, agent.meta is not None, cfg.sub.gamma, cfg.meta.gamma)
+    builder = EpisodeBuilder(2, agent.meta is not None)
     rng = np.random.default_rng(0)
     episodes = {0: [], 1: []}
     for _ in range(steps):
@@ -276,7 +276,7 @@ def test_learner_schedule_and_store(tmp_path):
     cfg = tiny(eval_every=3, checkpoint_every=2, sub_only_episodes=3, learning_starts=10**6)
     learner = Learner(cfg, tmp_path, progress=False, tensorboard=False)
     rollout = Rollout(make_batch(ENV, 2), learner.agent, seed=0)
-    builder = EpisodeBuilder(2, True, cfg.sub.gamma, cfg.meta.gamma)
+    builder = EpisodeBuilder(2, True)
     rng = np.random.default_rng(0)
     items = []
     while len(items) < 5:

@@ -59,7 +59,8 @@ class Agent:
         self.meta: Controller | None = None
         if spec.hierarchical:
             self.meta = Controller("meta", make_network(cfg.algo, "meta", num_actions, num_subgoals),
-                                   cfg.controller("meta"), _frames, device=cfg.device, seed=cfg.seed + 1)
+                                   cfg.controller("meta"), _frames, device=cfg.device, seed=cfg.seed + 1,
+                                   smdp_discount=cfg.smdp_discount)
 
     @property
     def controllers(self) -> list[Controller]:

@@ -6,7 +6,7 @@ The whole update is :meth:`Controller.update`; acting is :meth:`Controller.act`.
 from __future__ import annotations
 
 import copy
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 import torch
@@ -24,20 +24,29 @@ InputBuilder = Callable[[SequenceBatch], np.ndarray]
 """Turns a sampled window into the network input ``(B, n+1, ...)``."""
 
 
-def meta_transition(option_extrinsic: float, terminated: bool, option_steps: int, next_place: int,
-                    gamma: float, smdp_discount: bool) -> tuple[float, float, bool, int]:
-    """The meta-controller's transition for an option that just ended, as its target reads
-    it: ``(reward, discount, terminal, next_invalid)``.
+def meta_transition(option_extrinsic: float, terminated: bool, option_steps: int,
+                    next_place: int) -> tuple[float, int, bool, int]:
+    """The meta-controller's transition for an option that just ended, as replay stores it:
+    ``(reward, option_steps, terminal, next_invalid)``.
 
     * reward: the option's summed extrinsic reward;
-    * discount: ``gamma ** option_steps`` with ``smdp_discount`` (the SMDP option of k steps),
-      else ``gamma`` (the thesis: one meta step per option);
+    * option_steps: the option's length k in primitive steps (the target discounts by
+      ``gamma ** k`` with ``smdp_discount``, else by ``gamma``: :meth:`Controller.update`);
     * terminal: the episode terminated (a time limit is not terminal: it bootstraps);
     * next_invalid: ``next_place``, the subgoal whose place the next decision starts from
       (the meta-controller may not pick it), or -1 (``NO_SUBGOAL``).
     """
-    discount = gamma ** option_steps if smdp_discount else gamma
-    return option_extrinsic, discount, terminated, next_place
+    return option_extrinsic, option_steps, terminated, next_place
+
+
+class UpdateStats(NamedTuple):
+    """What one :meth:`Controller.update` saw, as detached 0-d tensors on the controller's
+    device (read them as floats only when needed: each read waits for the device)."""
+
+    td_loss: torch.Tensor  # the loss minimised
+    q_taken: torch.Tensor  # mean Q(s_t, a_t) of the online net over the loss steps
+    target: torch.Tensor  # mean Double DQN target y_t over the loss steps
+    grad_norm: torch.Tensor  # the gradients' total 2-norm before clipping
 
 
 class Controller:
@@ -46,19 +55,22 @@ class Controller:
     ``net`` maps ``(B, T, ...)`` inputs to Q-values ``(B, T, n_outputs)``; ``build_input``
     assembles a sampled window into that input (e.g. observation + subgoal image).
     Replay fields used (read as :class:`~hdrqn_ros.agents.replay.ReplaySamples`):
-    ``action`` (int), ``reward`` (float32), ``terminal`` (bool, no bootstrap), ``discount``
-    (float32, gamma or gamma**k) and, optionally, ``next_invalid`` (int, -1 for none): a
-    choice the next step may not take (the meta-controller cannot pick the subgoal it
-    stands on), left out of the target's max. A sub-controller (or flat) step stores the
-    intrinsic (flat: classical) reward, ``terminal`` =
-    :func:`~hdrqn_ros.critic.sub_controller_terminal` and the sub gamma; a meta step is
+    ``action`` (int), ``reward`` (float32), ``terminal`` (bool, no bootstrap) and,
+    optionally, ``next_invalid`` (int, -1 for none): a choice the next step may not take
+    (the meta-controller cannot pick the subgoal it stands on), left out of the target's
+    max, and ``option_steps`` (int, the option's length k in primitive steps). The discount
+    is not stored: the target reads ``cfg.gamma`` at every update, raised to the power
+    ``option_steps`` with ``smdp_discount`` (eq. 3.5; the meta-controller). A
+    sub-controller (or flat) step stores the intrinsic (flat: classical) reward and
+    ``terminal`` = :func:`~hdrqn_ros.critic.sub_controller_terminal`; a meta step is
     :func:`meta_transition`.
     """
 
     def __init__(self, name: str, net: nn.Module, cfg: ControllerConfig, build_input: InputBuilder,
-                 device: str | torch.device = "cpu", seed: int = 0):
+                 device: str | torch.device = "cpu", seed: int = 0, smdp_discount: bool = False):
         self.name = name
         self.cfg = cfg
+        self.smdp_discount = smdp_discount
         self.device = torch.device(device)
         self.online = net.to(self.device)
         self.target = copy.deepcopy(net).to(self.device).requires_grad_(False)
@@ -85,20 +97,23 @@ class Controller:
         q, state = self.online.act(torch.as_tensor(x, device=self.device), state)
         return q.cpu().numpy(), state
 
-    def update(self) -> float:
+    def update(self) -> UpdateStats:
         """Sample windows, take one Adam step on the Double DQN loss, soft-update the target.
 
-        Loss only on each window's ``mask`` steps (the last n/2). Returns the loss.
-        Raises :class:`TrainingDiverged` when the loss is not finite.
+        Loss only on each window's ``mask`` steps (the last n/2). Returns what the update
+        saw (:class:`UpdateStats`). Raises :class:`TrainingDiverged` when the loss is not finite.
         """
         batch = self.replay.sample_transitions(self.cfg.batch_size, self.seq_len, self.build_input, self.device,
                                                history=self.cfg.window_history)
 
         # ALGO LOGIC: the Double DQN target on a window of n steps (thesis Algorithms 3, 4)
-        #   y_t = r_t + discount_t * (1 - terminal_t) * Q_target(s_{t+1}, argmax_a Q(s_{t+1}, a))
-        # where r_t, discount_t (gamma, or gamma**k after an option of k steps), terminal_t and
-        # the invalid choice at s_{t+1} are what the replay stored for step t (see
-        # ``meta_transition`` below and training/episodes.py); s_{t+1} = batch.obs[:, t + 1].
+        #   y_t = r_t + d_t * (1 - terminal_t) * Q_target(s_{t+1}, argmax_a Q(s_{t+1}, a))
+        # where d_t = gamma (this controller's cfg.gamma), or gamma ** k_t with smdp_discount
+        # (eq. 3.5: k_t = option_steps, the option's length in primitive steps); r_t, k_t,
+        # terminal_t and the invalid choice at s_{t+1} are what the replay stored for step t
+        # (``meta_transition`` above and training/episodes.py); s_{t+1} = batch.obs[:, t + 1].
+        gamma = self.cfg.gamma
+        discount = gamma ** batch.option_steps if self.smdp_discount else gamma
         q, _ = self.online(batch.obs)  # (B, n+1, A): Q(s_t, .) for every input of the window
         q_taken = q[:, :-1].gather(-1, batch.action.unsqueeze(-1)).squeeze(-1)  # Q(s_t, a_t)
         with torch.no_grad():
@@ -109,21 +124,25 @@ class Controller:
                 q_next = q_next.masked_fill(hit, float("-inf"))
             next_action = q_next.argmax(-1, keepdim=True)
             next_value = q_target[:, 1:].gather(-1, next_action).squeeze(-1)  # ... the target net values it
-            y = batch.reward + batch.discount * (1 - batch.terminal) * next_value
+            y = batch.reward + discount * (1 - batch.terminal) * next_value
         per_step = (q_taken - y).pow(2) if self.cfg.loss == "mse" else \
             nn.functional.smooth_l1_loss(q_taken, y, reduction="none")
-        loss = (per_step * batch.mask).sum() / batch.mask.sum().clamp(min=1)
+        loss_steps = batch.mask.sum().clamp(min=1)
+        loss = (per_step * batch.mask).sum() / loss_steps
         if not torch.isfinite(loss):
             raise TrainingDiverged(f"{self.name} loss is {loss.item()} at update {self.updates}")
 
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        if self.cfg.grad_clip is not None:
-            nn.utils.clip_grad_norm_(self._online_params, self.cfg.grad_clip, foreach=True)
+        # without grad_clip an infinite bound: the norm is measured, the gradients stay as they are
+        max_norm = float("inf") if self.cfg.grad_clip is None else self.cfg.grad_clip
+        grad_norm = nn.utils.clip_grad_norm_(self._online_params, max_norm, foreach=True)
         self.optimizer.step()
         self.soft_update()
         self.updates += 1
-        return float(loss.detach())
+        with torch.no_grad():
+            return UpdateStats(td_loss=loss.detach(), q_taken=(q_taken * batch.mask).sum() / loss_steps,
+                               target=(y * batch.mask).sum() / loss_steps, grad_norm=grad_norm)
 
     @torch.no_grad()
     def soft_update(self) -> None:

@@ -30,17 +30,17 @@ Storage layout of one episode of ``T`` steps and ``K`` segments:
 Memory (gridworld sub-controller replay, thesis table 4.7: 5000 episodes)
 -------------------------------------------------------------------------
 Per stored step: one 44x44x3 uint8 frame = 5808 B, plus compact fields, e.g. action
-``uint8`` (1 B), intrinsic reward ``float32`` (4 B), terminal ``bool`` (1 B), discount
-``float32`` (4 B) = 10 B, i.e. 5818 B a step. Per episode: one extra frame (``o_T``,
+``uint8`` (1 B), intrinsic reward ``float32`` (4 B), terminal ``bool`` (1 B) = 6 B, i.e.
+5814 B a step. Per episode: one extra frame (``o_T``,
 5808 B) and per option its subgoal image (5808 B) plus its int32 start (4 B).
 
 5000 episodes x 50 steps = 250,000 steps:
 
-* steps:        250,000 x 5818 B = 1,454,500,000 B
+* steps:        250,000 x 5814 B = 1,453,500,000 B
 * last frames:    5,000 x 5808 B =    29,040,000 B
 * options: K per episode, 5,000 x K x 5812 B = K x 29,060,000 B
 
-With K = 10 options an episode that is 1,774,140,000 B = 1.65 GiB <= 2 GiB; the 2 GiB
+With K = 10 options an episode that is 1,773,140,000 B = 1.65 GiB <= 2 GiB; the 2 GiB
 bound holds up to ~22 options per episode on average (an unbounded flat replay of 6-channel
 stacked frames would need 11.6 KB a step, 2.9 GB). ``nbytes`` counts array data only;
 the Python objects add roughly 1-2 KB per episode (~10 MB for 5000 episodes). Use
@@ -180,18 +180,18 @@ class SequenceBatch:
 
     def samples(self, obs: np.ndarray, device: torch.device | str = "cpu") -> "ReplaySamples":
         """The window as the Double DQN target reads it: ``obs`` (the network input built
-        from it, ``(B, n + 1, ...)``) and the fields ``action``, ``reward``, ``discount``,
-        ``terminal`` (and ``next_invalid`` when stored) as tensors on ``device``."""
+        from it, ``(B, n + 1, ...)``) and the fields ``action``, ``reward``, ``terminal``
+        (and ``next_invalid``, ``option_steps`` when stored) as tensors on ``device``."""
         fields = self.fields
-        invalid = fields.get("next_invalid")
+        invalid, option_steps = fields.get("next_invalid"), fields.get("option_steps")
         return ReplaySamples(
             obs=torch.as_tensor(obs, device=device),
             action=torch.as_tensor(fields["action"], device=device).long(),
             reward=torch.as_tensor(fields["reward"], device=device).float(),
-            discount=torch.as_tensor(fields["discount"], device=device).float(),
             terminal=torch.as_tensor(fields["terminal"], device=device).float(),
             mask=torch.as_tensor(self.loss_mask, device=device),
             next_invalid=None if invalid is None else torch.as_tensor(invalid, device=device).long(),
+            option_steps=None if option_steps is None else torch.as_tensor(option_steps, device=device).float(),
         )
 
 
@@ -204,21 +204,22 @@ class ReplaySamples(NamedTuple):
     * ``action``: int64, the action (or subgoal) taken at step t.
     * ``reward``: float32, r_t (the sub-controller's intrinsic reward, the meta-controller's
       summed extrinsic reward over the option, a flat agent's classical reward).
-    * ``discount``: float32, gamma, or gamma**k after an option of k steps (SMDP).
     * ``terminal``: float32, 1 where s_{t+1} is not bootstrapped from, else 0.
     * ``mask``: bool, the steps that carry the loss (:attr:`SequenceBatch.loss_mask`);
       padding and burn-in steps are False.
     * ``next_invalid``: int64 or None: a choice s_{t+1} may not take (the subgoal the
       meta-controller stands on), -1 for none; left out of the target's argmax.
+    * ``option_steps``: float32 or None: the length k in primitive steps of the option that
+      step t is (the meta-controller's SMDP discount gamma**k); 0 on padding steps.
     """
 
     obs: torch.Tensor
     action: torch.Tensor
     reward: torch.Tensor
-    discount: torch.Tensor
     terminal: torch.Tensor
     mask: torch.Tensor
     next_invalid: torch.Tensor | None
+    option_steps: torch.Tensor | None
 
 
 class EpisodeReplay:

@@ -230,8 +230,7 @@ class EnvAssembler(StepFollower):
         self.group, self.index = group, index
         self.spec = group.spec
         cfg = group.cfg
-        self.builder_args = (1, self.spec.hierarchical, cfg.controller("sub").gamma, cfg.meta.gamma,
-                             cfg.smdp_discount)
+        self.builder_args = (1, self.spec.hierarchical)
         self.transitions = 0
         self.skipped = 0  # steps seen while waiting for an episode boundary
         self.lost_episodes = 0  # episodes cut short by missing messages or restarts

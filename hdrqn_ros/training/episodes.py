@@ -1,14 +1,16 @@
 """Turn the per-step records of N environments into whole replay episodes and statistics.
 
 Sub-controller episode: frames o_0..o_T (T+1 observations, each stored once); fields
-``action, reward (intrinsic, or classical for flat agents), terminal, discount``; one
+``action, reward (intrinsic, or classical for flat agents), terminal``; one
 segment per option with its subgoal image (windows never cross an option boundary).
 ``terminal`` is the record's ``sub_terminal`` (:func:`~hdrqn_ros.critic.sub_controller_terminal`,
 applied alike by the in-process rollout and the graph's assembler).
 Meta-controller episode: one step per option; frames are the meta inputs at each decision
-plus the input after the last option; each step's reward, discount, terminal and
-``next_invalid`` are :func:`~hdrqn_ros.agents.controller.meta_transition` (defined beside
-the update that reads them, :meth:`~hdrqn_ros.agents.controller.Controller.update`).
+plus the input after the last option; each step's reward, ``option_steps`` (the option's
+length in primitive steps), terminal and ``next_invalid`` are
+:func:`~hdrqn_ros.agents.controller.meta_transition` (defined beside the update that reads
+them, :meth:`~hdrqn_ros.agents.controller.Controller.update`). No discount is stored: the
+update applies its controller's configured gamma (and ``smdp_discount``).
 Statistics also count the steps spent at each subgoal's place and log every option as
 :class:`OptionOutcome` (thesis figure 4.13b and the phase-1 table of section 4.5).
 """
@@ -49,7 +51,7 @@ class EpisodeStats:
     option_log: list[OptionOutcome] = field(default_factory=list)  # hierarchical agents only
 
 
-META_FIELDS = (("action", np.uint8), ("reward", np.float32), ("terminal", bool), ("discount", np.float32),
+META_FIELDS = (("action", np.uint8), ("reward", np.float32), ("option_steps", np.int32), ("terminal", bool),
                ("next_invalid", np.int8))
 """The meta-controller's replay fields, in the order of ``_Open.meta_steps``' tuples."""
 
@@ -65,7 +67,7 @@ class _Open:
     segment_starts: list = field(default_factory=list)
     segment_images: list = field(default_factory=list)
     meta_frames: list = field(default_factory=list)
-    meta_steps: list = field(default_factory=list)  # per finished option: (action, reward, terminal, discount, next_invalid)
+    meta_steps: list = field(default_factory=list)  # per finished option: a row of META_FIELDS
     classical: float = 0.0
     extrinsic: float = 0.0
     intrinsic: float = 0.0
@@ -88,12 +90,8 @@ class EpisodeBuilder:
     """Builds replay episodes from :class:`StepRecord` rows, per environment; :meth:`add`
     returns the episodes that finished at that step."""
 
-    def __init__(self, num_envs: int, hierarchical: bool, sub_gamma: float, meta_gamma: float,
-                 smdp_discount: bool = False):
+    def __init__(self, num_envs: int, hierarchical: bool):
         self.hierarchical = hierarchical
-        self.sub_gamma = np.float32(sub_gamma)
-        self.meta_gamma = meta_gamma
-        self.smdp_discount = smdp_discount
         self.open = [_Open() for _ in range(num_envs)]
 
     def add(self, step: StepRecord) -> list[FinishedEpisode]:
@@ -121,10 +119,8 @@ class EpisodeBuilder:
                 option_steps = int(step.option_steps[i])
                 ep.option_log.append(OptionOutcome(ep.option_start, int(step.subgoal[i]), option_steps,
                                                    ep.place == int(step.subgoal[i])))
-                meta_r, discount, terminal, next_invalid = meta_transition(
-                    step.option_extrinsic[i], env.terminated[i], option_steps, env.at_subgoal[i], self.meta_gamma,
-                    self.smdp_discount)
-                ep.meta_steps.append((step.subgoal[i], meta_r, terminal, discount, next_invalid))
+                ep.meta_steps.append((step.subgoal[i], *meta_transition(
+                    step.option_extrinsic[i], env.terminated[i], option_steps, env.at_subgoal[i])))
             if env.done[i]:
                 finished.append(self._close(i, ep, step))
                 self.open[i] = _Open()
@@ -136,7 +132,7 @@ class EpisodeBuilder:
         sub = Episode(
             frames=np.stack(ep.obs + [env.obs[i].copy()]),
             fields={"action": np.asarray(ep.action, np.uint8), "reward": np.asarray(ep.reward, np.float32),
-                    "terminal": np.asarray(ep.terminal, bool), "discount": np.full(t, self.sub_gamma, np.float32)},
+                    "terminal": np.asarray(ep.terminal, bool)},
             segment_starts=np.asarray(ep.segment_starts, np.int32),
             segment_data={"subgoal_image": np.stack(ep.segment_images)} if self.hierarchical else {},
         )

@@ -69,7 +69,7 @@ def play(agent: Agent, cfg: TrainConfig, episodes: int, seed: int, epsilon: floa
     quota = -(-episodes // n)
     batch = make_batch(cfg.env, n, **cfg.env_kwargs)
     rollout = Rollout(batch, agent, seed=seed, meta_state=cfg.meta_state, record_subgoal_images=sink is not None)
-    builder = EpisodeBuilder(n, agent.meta is not None, cfg.controller("sub").gamma, cfg.meta.gamma)
+    builder = EpisodeBuilder(n, agent.meta is not None)
     results: dict[tuple[int, int], EpisodeStats] = {}
     played = np.zeros(n, np.int64)
     rng = np.random.default_rng(seed)
@@ -177,7 +177,8 @@ class Learner:
         snapshot = prog.get("replay")
         self.replay_restored = bool(snapshot) and self.cfg.save_replay
         if self.replay_restored:
-            load_replay_snapshot(self.checkpoint_path.parent / snapshot["file"], self.replays(), snapshot, self._run_id())
+            load_replay_snapshot(self.checkpoint_path.parent / snapshot["file"], self.replays(), snapshot,
+                                 self._run_id(), written_with=saved)
 
     def resumed_line(self) -> str:
         """One line on what ``--resume`` restored: where the run continues, and its replay."""

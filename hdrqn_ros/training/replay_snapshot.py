@@ -9,6 +9,9 @@ Layout: episode ``i`` (0 the oldest, the next to be evicted) of controller ``rol
 the snapshot's ``token``, and per role the episode count, capacities, field names, total
 steps and bytes and the state of the replay's sampling generator.
 
+Version 1 snapshots (before the discount was read at update time) stored a ``discount``
+field; they load converted (:func:`_version1_fields`).
+
 Pairing with the checkpoint: each save writes a new file ``replay-<token>.safetensors``
 (temp file + rename), then the checkpoint (whose ``progress["replay"]`` names that file and
 its sha256), and only then deletes the older snapshots. A crash at any point leaves the
@@ -17,6 +20,7 @@ last checkpoint beside the snapshot it names (disk holds two snapshots for a mom
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 import uuid
@@ -29,7 +33,7 @@ from hdrqn_ros.hashing import file_sha256
 from hdrqn_ros.training.checkpoint import CheckpointError
 
 FORMAT = "hdrqn_ros-replay"
-VERSION = 1
+VERSION = 2
 META_KEY = "hdrqn_ros"
 PREFIX, SUFFIX = "replay-", ".safetensors"
 
@@ -99,10 +103,32 @@ def remove_other_snapshots(directory: str | Path, keep: str | None) -> None:
         path.unlink(missing_ok=True)
 
 
-def load_replay_snapshot(path: str | Path, replays: dict[str, EpisodeReplay], expected: dict, run: dict) -> None:
+def _version1_fields(role: str, fields: dict[str, np.ndarray], meta_gamma: float,
+                     smdp_discount: bool) -> dict[str, np.ndarray]:
+    """A version 1 episode's fields in today's layout. The sub-controller's ``discount``
+    (its gamma) goes. The meta-controller's ``discount`` (``meta_gamma ** k`` with
+    ``smdp_discount``, else ``meta_gamma``) becomes ``option_steps`` k =
+    ``round(log(discount) / log(meta_gamma))``: exact for options stored with that gamma.
+    Where the discount did not depend on k (no ``smdp_discount``, or gamma 0 or 1) k is not
+    recoverable and loads as 1; the update reads k only with ``smdp_discount``."""
+    fields = dict(fields)
+    discount = fields.pop("discount")
+    if role == "meta":
+        if smdp_discount and 0.0 < meta_gamma < 1.0:
+            steps = np.rint(np.log(discount.astype(np.float64)) / math.log(meta_gamma)).clip(min=1)
+        else:
+            steps = np.ones(discount.shape)
+        fields["option_steps"] = steps.astype(np.int32)
+    return fields
+
+
+def load_replay_snapshot(path: str | Path, replays: dict[str, EpisodeReplay], expected: dict, run: dict,
+                         written_with: dict) -> None:
     """Fill the empty ``replays`` from snapshot ``path`` exactly (same episodes, same order,
     same sampling generator state). ``expected``: the checkpoint's record of it (``sha256``,
-    ``token``); ``run``: this run's ``algo``, ``env``, ``env_kwargs``. Raises
+    ``token``); ``run``: this run's ``algo``, ``env``, ``env_kwargs``; ``written_with``: the
+    checkpoint's config (its ``meta.gamma`` and ``smdp_discount`` convert a version 1
+    snapshot, :func:`_version1_fields`). Raises
     :class:`CheckpointError` naming ``path`` for a missing, corrupted, truncated or
     foreign snapshot; the replays are left empty then (never partly filled)."""
     from safetensors import SafetensorError, safe_open
@@ -122,8 +148,8 @@ def load_replay_snapshot(path: str | Path, replays: dict[str, EpisodeReplay], ex
     except (SafetensorError, OSError, KeyError, TypeError, ValueError) as exc:
         raise CheckpointError(f"{path} is not a readable replay snapshot ({type(exc).__name__}: "
                               f"{str(exc).splitlines()[0] if str(exc) else 'no detail'})") from None
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT or meta.get("version") != VERSION:
-        raise CheckpointError(f"{path} is not a version {VERSION} hdrqn_ros replay snapshot")
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT or meta.get("version") not in (1, VERSION):
+        raise CheckpointError(f"{path} is not a version 1 or {VERSION} hdrqn_ros replay snapshot")
     if meta.get("token") != expected.get("token"):
         raise CheckpointError(f"replay snapshot {path} belongs to another checkpoint")
     for key in ("algo", "env", "env_kwargs"):
@@ -141,11 +167,14 @@ def load_replay_snapshot(path: str | Path, replays: dict[str, EpisodeReplay], ex
                 raise CheckpointError(f"cannot restore {path} into a non-empty {role} replay")
             for i in range(int(info["episodes"])):
                 key = f"{role}/{i:06d}"
-                replay.add(Episode(frames=tensors.pop(f"{key}/frames"),
-                                   fields={n: tensors.pop(f"{key}/field/{n}") for n in info["fields"]},
+                fields = {n: tensors.pop(f"{key}/field/{n}") for n in info["fields"]}
+                if meta["version"] == 1:
+                    fields = _version1_fields(role, fields, written_with["meta"]["gamma"],
+                                              written_with.get("smdp_discount", False))
+                replay.add(Episode(frames=tensors.pop(f"{key}/frames"), fields=fields,
                                    segment_starts=tensors.pop(f"{key}/segment_starts"),
                                    segment_data={n: tensors.pop(f"{key}/segment/{n}") for n in info["segment_data"]}))
-            if (len(replay), replay.num_steps, replay.nbytes) != (info["episodes"], info["num_steps"], info["nbytes"]):
+            if (len(replay), replay.num_steps) != (info["episodes"], info["num_steps"]):
                 raise CheckpointError(f"replay snapshot {path}: the {role} replay does not fit this run's replay "
                                       f"capacity ({len(replay)} of {info['episodes']} episodes kept)")
             replay._rng.bit_generator.state = info["rng"]

@@ -43,8 +43,7 @@ class Trainer(Learner):
         self.sink = sink
         self.rollout = Rollout(self.batch, self.agent, seed=cfg.seed + self.episodes, meta_state=cfg.meta_state,
                                record_subgoal_images=sink is not None)
-        self.builder = EpisodeBuilder(cfg.num_envs, self.agent.meta is not None, cfg.controller("sub").gamma,
-                                      cfg.meta.gamma, cfg.smdp_discount)
+        self.builder = EpisodeBuilder(cfg.num_envs, self.agent.meta is not None)
 
     # -- main loop -------------------------------------------------------------------------
     def step(self) -> list[tuple[EpisodeStats, float, float]]:

@@ -229,7 +229,7 @@ def run_node(tmp_path: Path, name: str, *params: str, timeout: float = 120) -> t
 @pytest.mark.parametrize("params, problem", [
     (["subgoal_poses_topic:=places", "pose_type:=gps"], "pose_type must be one of"),
     ([], "exactly one"),
-    (["subgoal_poses_topic:=places", "step_period:=0.0"], "step_period must be a positive"),
+    (["subgoal_poses_topic:=places", "step_period:=0.0"], "step_period must be > 0"),
     (["subgoal_table:=TABLE3"], "3 entries but the agent has 2"),
 ])
 def test_robot_environment_startup_mistakes_exit_2(tmp_path, domain, params, problem):

@@ -14,11 +14,13 @@ the same ``seed`` (fires left out); its places go out as a latched
 robot-side environment's ``env_step`` says the episode ended.
 
 Simulated time runs ``real_time_factor`` times faster than the wall clock (0: as fast as it
-can). With ``lockstep`` (``action`` or ``cmd_vel``) the clock stands at 0 until the
-robot-side environment's first step, stops at each agent step until the agent answered
-it, and at the next step's time until the robot-side environment published it (as PX4's lockstep simulation does), so a loaded machine never changes what
-happens; a hold longer than ``lockstep_timeout`` wall seconds is logged and released.
-It is not a robot simulator: no dynamics, no sensors, no localisation error, one frame.
+can); the node keeps it itself and paces it on the wall clock, with or without
+``use_sim_time``. With ``lockstep`` (``action`` or ``cmd_vel``) the clock stands at 0 until
+the robot-side environment's first step, stops at each agent step until the agent answered
+it, and at the next step's time until the robot-side environment published it (as PX4's
+lockstep simulation does), so a loaded machine never changes what happens; a hold longer
+than ``lockstep_timeout`` wall seconds is logged and released. It is not a robot
+simulator: no dynamics, no sensors, no localisation error, one frame.
 """
 from __future__ import annotations
 
@@ -26,110 +28,118 @@ import math
 import time
 
 import numpy as np
+from geometry_msgs.msg import (Point, Pose, PoseArray, PoseStamped, PoseWithCovariance, Quaternion, Twist,
+                               TwistStamped, TwistWithCovariance, Vector3)
+from nav_msgs.msg import MapMetaData, OccupancyGrid, Odometry
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.time import Time
+from rosgraph_msgs.msg import Clock as ClockMsg
+from std_msgs.msg import Float64MultiArray, Header, Int64MultiArray
 
 from hdrqn_ros.envs.registration import GRID_IDS
-from hdrqn_ros.middleware import LATCHED_QOS, Middleware, ParameterRule
-from hdrqn_ros.nodes import nav
-from hdrqn_ros.nodes.common import NodeConfigError, live_parameters, run_node
+from hdrqn_ros.nodes.graph_parameters import MAX_MESSAGE_BYTES
+from hdrqn_ros.nodes.node_logger import python_logger
+from hdrqn_ros.nodes.parameters import Param, declare_parameters
+from hdrqn_ros.nodes.process import run_node
+from hdrqn_ros.nodes.qos import DEFAULT_QOS, LATCHED_QOS, STEP_QOS
+from hdrqn_ros.nodes.ros_messages import bounded_subscription, pack
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.follower import done
-from hdrqn_ros.robot.loopback_world import LoopbackWorld
+from hdrqn_ros.robot.loopback_world import Costmap, LoopbackWorld
 from hdrqn_ros.throttle import Throttle
 
-PARAMETERS = {"env": "hdrqn/GridWorld-2Goals-v0", "seed": 0, "frame_id": "map", "tick": 0.1,
-              "real_time_factor": 20.0, "holonomic": True, "cmd_vel_topic": "cmd_vel", "cmd_vel_stamped": False,
-              "cmd_vel_timeout": 2.0, "goal_pose_topic": "goal_pose", "nav_speed": 0.25, "odom_topic": "odom",
-              "costmap_topic": "local_costmap/costmap", "costmap_size": 3.0, "costmap_period": 0.5,
-              "global_costmap_topic": "global_costmap/costmap", "subgoal_poses_topic": "subgoal_poses",
-              "lockstep": "off", "step_period": 2.5, "lockstep_timeout": 10.0}
-"""``tick``: simulated seconds per integration step; ``cmd_vel_timeout``: simulated seconds
-a command is held; ``nav_speed``: m/s toward a goal pose; ``costmap_size``: side of the
-rolling local costmap (m); ``costmap_period``: simulated seconds between local costmaps;
-``lockstep``: ``off``, ``action`` (hold until the sub-controller's action for the step) or
-``cmd_vel`` (until a velocity command after the step); ``step_period``: the robot-side
-environment's step period (the time at which lockstep waits for its next step)."""
 LOCKSTEP_MODES = ("off", "action", "cmd_vel")
-RULES = {
-    "env": ParameterRule("the map: a gridworld or four-rooms environment id"),
-    "seed": ParameterRule("the layouts: the simulator's for this seed, without fire"),
-    "frame_id": ParameterRule("the one frame of everything published"),
-    "tick": ParameterRule("simulated seconds per integration step", positive=True),
-    "real_time_factor": ParameterRule("simulated seconds per wall second (0: as fast as possible)", low=0.0, high=1e6),
-    "holonomic": ParameterRule("false: differential drive (linear.y ignored)"),
-    "cmd_vel_topic": ParameterRule("velocity commands in"),
-    "cmd_vel_stamped": ParameterRule("commands are TwistStamped (else Twist)"),
-    "cmd_vel_timeout": ParameterRule("simulated seconds a command is held, then the robot stops", live=True,
-                                     positive=True),
-    "goal_pose_topic": ParameterRule("goal poses the navigator stand-in drives to"),
-    "nav_speed": ParameterRule("m/s toward a goal pose", live=True, positive=True),
-    "odom_topic": ParameterRule("nav_msgs/Odometry out, every tick"),
-    "costmap_topic": ParameterRule("the rolling local costmap out"),
-    "costmap_size": ParameterRule("side of the local costmap (m)", live=True, positive=True),
-    "costmap_period": ParameterRule("simulated seconds between local costmaps", live=True, positive=True),
-    "global_costmap_topic": ParameterRule("the whole map out, once per layout"),
-    "subgoal_poses_topic": ParameterRule("each episode's places out (latched PoseArray)"),
-    "lockstep": ParameterRule("stop the clock at each agent step until it is answered", choices=LOCKSTEP_MODES),
-    "step_period": ParameterRule("the robot environment's step period (when lockstep waits for its next step)",
-                                 live=True, positive=True),
-    "lockstep_timeout": ParameterRule("wall seconds a lockstep hold may last before it is released", live=True,
-                                      positive=True),
+"""``off``; hold the clock until the sub-controller's ``action`` for the step; or until a
+velocity command after the step (``cmd_vel``)."""
+PARAMETERS = {
+    "env": Param("hdrqn/GridWorld-2Goals-v0", "the map: a gridworld or four-rooms environment id",
+                 choices=tuple(sorted(GRID_IDS))),
+    "seed": Param(0, "the layouts: the simulator's for this seed, without fire", low=0, high=2**63 - 1),
+    "frame_id": Param("map", "the one frame of everything published"),
+    "tick": Param(0.1, "simulated seconds per integration step", positive=True),
+    "real_time_factor": Param(20.0, "simulated seconds per wall second (0: as fast as possible)", low=0.0, high=1e6),
+    "holonomic": Param(True, "false: differential drive (linear.y ignored)"),
+    "cmd_vel_topic": Param("cmd_vel", "velocity commands in"),
+    "cmd_vel_stamped": Param(False, "commands are TwistStamped (else Twist)"),
+    "cmd_vel_timeout": Param(2.0, "simulated seconds a command is held, then the robot stops", live=True,
+                             positive=True),
+    "goal_pose_topic": Param("goal_pose", "goal poses the navigator stand-in drives to"),
+    "nav_speed": Param(0.25, "m/s toward a goal pose", live=True, positive=True),
+    "odom_topic": Param("odom", "nav_msgs/Odometry out, every tick"),
+    "costmap_topic": Param("local_costmap/costmap", "the rolling local costmap out"),
+    "costmap_size": Param(3.0, "side of the local costmap (m)", live=True, positive=True),
+    "costmap_period": Param(0.5, "simulated seconds between local costmaps", live=True, positive=True),
+    "global_costmap_topic": Param("global_costmap/costmap", "the whole map out, once per layout"),
+    "subgoal_poses_topic": Param("subgoal_poses", "each episode's places out (latched PoseArray)"),
+    "lockstep": Param("off", "stop the clock at each agent step until it is answered", choices=LOCKSTEP_MODES),
+    "step_period": Param(2.5, "the robot environment's step period (when lockstep waits for its next step)",
+                         live=True, positive=True),
+    "lockstep_timeout": Param(10.0, "wall seconds a lockstep hold may last before it is released", live=True,
+                              positive=True),
+    **MAX_MESSAGE_BYTES,
 }
-"""Descriptions and rules of :data:`PARAMETERS`."""
+"""The loopback robot's parameters; the live ones take effect at their next use."""
+RESEND_S = 1.0
+"""Wall seconds between the state's (``/clock``, odometry) repetitions while lockstep holds the clock."""
 
 
-class LoopbackRobotNode:
-    def __init__(self, mw: Middleware):
-        node = self.node = mw.create_node("loopback_robot")
-        params = self.params = node.declare_parameters(PARAMETERS, rules=RULES)
-        if params["env"] not in GRID_IDS:
-            raise NodeConfigError(f"the loopback robot drives the gridworld maps: env must be one of "
-                                  f"{sorted(GRID_IDS)}, got {params['env']!r}")
-        for name in ("tick", "cmd_vel_timeout", "nav_speed", "costmap_size", "costmap_period", "step_period",
-                     "lockstep_timeout"):
-            if not (math.isfinite(params[name]) and params[name] > 0):
-                raise NodeConfigError(f"{name} must be a positive number, got {params[name]!r}")
-        if not (math.isfinite(params["real_time_factor"]) and params["real_time_factor"] >= 0):
-            raise NodeConfigError(f"real_time_factor must be >= 0 (0: as fast as possible), "
-                                  f"got {params['real_time_factor']!r}")
-        if params["lockstep"] not in LOCKSTEP_MODES:
-            raise NodeConfigError(f"lockstep must be one of {LOCKSTEP_MODES}, got {params['lockstep']!r}")
+def _pose(x: float, y: float, yaw: float = 0.0) -> Pose:
+    return Pose(position=Point(x=float(x), y=float(y)), orientation=Quaternion(z=math.sin(yaw / 2),
+                                                                                w=math.cos(yaw / 2)))
+
+
+class LoopbackRobotNode(Node):
+    """The simulated robot and its clock."""
+
+    def __init__(self, **kwargs):
+        super().__init__("loopback_robot", **kwargs)
+        params = self.params = declare_parameters(self, PARAMETERS, apply=self._apply)
         grid = GRID_IDS[params["env"]]
         self.world = LoopbackWorld(grid["layout"], grid["n_goals"], params["seed"], nav_speed_m_s=params["nav_speed"],
                                    holonomic=params["holonomic"])
         self.tick_ns = int(round(params["tick"] * 1e9))
-        live_parameters(node, params, RULES, self._apply)
-        self.now_ns = 0
-        self.next_costmap_ns = 0
-        twist = nav.TWIST_STAMPED if params["cmd_vel_stamped"] else nav.TWIST
-        node.create_subscription(twist, params["cmd_vel_topic"], self._on_cmd_vel)
-        node.create_subscription(nav.POSE_STAMPED, params["goal_pose_topic"], self._on_goal_pose)
-        node.create_subscription(wire.FLOATS, wire.ENV_STEP, self._on_env_step, wire.STEP_QOS)
-        node.create_subscription(wire.INTS, wire.ACTION, self._on_action, wire.STEP_QOS)
-        self.pub_clock = node.create_publisher(wire.CLOCK_TYPE, wire.CLOCK)
-        self.pub_odom = node.create_publisher(nav.POSE_TYPES["odometry"], params["odom_topic"])
-        self.pub_costmap = node.create_publisher(nav.OCCUPANCY_GRID, params["costmap_topic"], LATCHED_QOS)
-        self.pub_global = node.create_publisher(nav.OCCUPANCY_GRID, params["global_costmap_topic"], LATCHED_QOS)
-        self.pub_places = node.create_publisher(nav.POSE_ARRAY, params["subgoal_poses_topic"], LATCHED_QOS)
-        self.rejected = Throttle(node.logger, "rejected a message")
+        self.now_ns = self.next_costmap_ns = 0  # simulated time (ns), when the next local costmap is due
+        self.rejected = Throttle(python_logger(self), "rejected a message")
         # lockstep: the latest agent step (its key, whether it ended the episode)
         self.step_key: int | None = None
         self.step_done = False
         self.action_key = self.answered_key = -1  # the latest action's key; the latest step answered
         self.moves = self.moves_used = 0  # non-zero commands received; those that answered steps
-        self.held_since: float | None = None
+        self.held_since: float | None = None  # wall time the current hold began
+        self.sent_at = 0.0  # wall time the state last went out during a hold
         self.released_key: int | None = -1  # the step whose hold timed out (runs free until the next step;
         #                                     None: the wait for the first step)
+        self._subscribe()
+        self.pub_clock = self.create_publisher(ClockMsg, wire.CLOCK, DEFAULT_QOS)
+        self.pub_odom = self.create_publisher(Odometry, params["odom_topic"], DEFAULT_QOS)
+        self.pub_costmap = self.create_publisher(OccupancyGrid, params["costmap_topic"], LATCHED_QOS)
+        self.pub_global = self.create_publisher(OccupancyGrid, params["global_costmap_topic"], LATCHED_QOS)
+        self.pub_places = self.create_publisher(PoseArray, params["subgoal_poses_topic"], LATCHED_QOS)
         self._new_layout()
         period = params["tick"] / params["real_time_factor"] if params["real_time_factor"] > 0 else 0.001
-        node.create_timer(period, self._tick)
+        self.create_timer(period, self._tick, clock=Clock(clock_type=ClockType.STEADY_TIME))  # paces simulated time
+
+    def _subscribe(self) -> None:
+        params, logger = self.params, self.rejected.logger
+
+        def subscribe(msg_type, topic: str, callback, qos) -> None:
+            bounded_subscription(self, msg_type, topic, callback, qos, params["max_message_bytes"], logger)
+
+        subscribe(TwistStamped if params["cmd_vel_stamped"] else Twist, params["cmd_vel_topic"], self._on_cmd_vel,
+                  DEFAULT_QOS)
+        subscribe(PoseStamped, params["goal_pose_topic"], self._on_goal_pose, DEFAULT_QOS)
+        subscribe(Float64MultiArray, wire.ENV_STEP, self._on_env_step, STEP_QOS)
+        subscribe(Int64MultiArray, wire.ACTION, self._on_action, STEP_QOS)
 
     def _apply(self, name: str, value) -> None:
-        """A live parameter changed (the others are read at their next use)."""
+        """A live parameter changed (read at its next use)."""
+        self.params[name] = value
         if name == "nav_speed":
             self.world.nav_speed = float(value)
 
     # -- inputs ------------------------------------------------------------------------------------
-    def _on_cmd_vel(self, msg) -> None:
+    def _on_cmd_vel(self, msg: Twist | TwistStamped) -> None:
         twist = msg.twist if self.params["cmd_vel_stamped"] else msg
         values = (twist.linear.x, twist.linear.y, twist.angular.z)
         if not all(math.isfinite(v) for v in values):
@@ -140,7 +150,7 @@ class LoopbackRobotNode:
         else:
             self.world.stop()
 
-    def _on_goal_pose(self, msg) -> None:
+    def _on_goal_pose(self, msg: PoseStamped) -> None:
         if msg.header.frame_id != self.params["frame_id"]:
             return self.rejected.warn(f"goal_pose in frame {msg.header.frame_id!r}, the map is "
                                       f"{self.params['frame_id']!r}")
@@ -149,7 +159,7 @@ class LoopbackRobotNode:
         except ValueError as exc:
             self.rejected.warn(f"goal_pose: {exc}")
 
-    def _on_env_step(self, msg) -> None:
+    def _on_env_step(self, msg: Float64MultiArray) -> None:
         try:
             row = wire.read_steps(msg)[0]
         except wire.ProtocolError as exc:
@@ -161,7 +171,7 @@ class LoopbackRobotNode:
         if self.step_done:
             self._new_layout()
 
-    def _on_action(self, msg) -> None:
+    def _on_action(self, msg: Int64MultiArray) -> None:
         try:
             key, _ = wire.read_actions(msg, 1 << 30, 1)
         except wire.ProtocolError:
@@ -193,63 +203,63 @@ class LoopbackRobotNode:
         return True
 
     def _tick(self) -> None:
+        """One integration step of simulated time, unless lockstep holds the clock."""
         if waiting := self._holding():
-            now = time.monotonic()
-            if self.held_since is None:
-                self.held_since = now
-            elif now - self.held_since > self.params["lockstep_timeout"]:
-                self.node.logger.warning("lockstep: waited %.1f s for %s; the clock runs free until the next step",
-                                         now - self.held_since, waiting)
-                self.released_key, self.held_since = self.step_key, None
-            return
+            return self._hold(waiting)
+        self.held_since = None
         self.world.advance(self.params["tick"])
         self.now_ns += self.tick_ns
         self._publish_state()
 
+    def _hold(self, waiting: str) -> None:
+        """Keep the clock still, sending the state again every :data:`RESEND_S` (a node that joins
+        during a hold learns where the robot is), until ``lockstep_timeout`` releases the hold."""
+        now = time.monotonic()
+        if self.held_since is None:
+            self.held_since = self.sent_at = now
+        elif now - self.held_since > self.params["lockstep_timeout"]:
+            self.get_logger().warning(f"lockstep: waited {now - self.held_since:.1f} s for {waiting}; the clock "
+                                      f"runs free until the next step")
+            self.released_key, self.held_since = self.step_key, None
+        elif now - self.sent_at >= RESEND_S:
+            self.sent_at = now
+            self._publish_state()
+
+    # -- outputs -------------------------------------------------------------------------------------
+    def _header(self) -> Header:
+        return Header(stamp=Time(nanoseconds=self.now_ns).to_msg(), frame_id=self.params["frame_id"])
+
     def _new_layout(self) -> None:
+        """The next episode's layout: the robot at its start, the whole map and the places out."""
         self.world.new_episode()
         self.next_costmap_ns = self.now_ns  # a costmap of the new place now
         self._publish_state()
         self.pub_global.publish(self._costmap_msg(self.world.global_costmap()))
-        stamp = wire.make_header(self.node, self.now_ns, self.params["frame_id"])
-        self.pub_places.publish(self.node.msg(nav.POSE_ARRAY)(header=stamp, poses=[
-            self._pose(x, y, 0.0) for x, y in self.world.layout.goal_xy]))
+        self.pub_places.publish(PoseArray(header=self._header(), poses=[
+            _pose(x, y) for x, y in self.world.layout.goal_xy]))
 
     def _publish_state(self) -> None:
-        node, now = self.node, self.now_ns
-        self.pub_clock.publish(node.msg(wire.CLOCK_TYPE)(clock=wire.make_time(node, now)))
+        """``/clock``, the odometry, and the local costmap when one is due."""
+        self.pub_clock.publish(ClockMsg(clock=Time(nanoseconds=self.now_ns).to_msg()))
         x, y, yaw = self.world.pose
         vx, vy, wz = self.world.velocity
-        v3 = node.msg("geometry_msgs/msg/Vector3")
-        twist = node.msg("geometry_msgs/msg/Twist")(linear=v3(x=vx, y=vy, z=0.0), angular=v3(x=0.0, y=0.0, z=wz))
-        odom = node.msg(nav.POSE_TYPES["odometry"])(
-            header=wire.make_header(node, now, self.params["frame_id"]), child_frame_id="base_link",
-            pose=node.msg("geometry_msgs/msg/PoseWithCovariance")(pose=self._pose(x, y, yaw)),
-            twist=node.msg("geometry_msgs/msg/TwistWithCovariance")(twist=twist))
-        self.pub_odom.publish(odom)
-        if now >= self.next_costmap_ns:
-            self.next_costmap_ns = now + int(round(self.params["costmap_period"] * 1e9))
+        twist = Twist(linear=Vector3(x=float(vx), y=float(vy)), angular=Vector3(z=float(wz)))
+        self.pub_odom.publish(Odometry(header=self._header(), child_frame_id="base_link",
+                                       pose=PoseWithCovariance(pose=_pose(x, y, yaw)),
+                                       twist=TwistWithCovariance(twist=twist)))
+        if self.now_ns >= self.next_costmap_ns:
+            self.next_costmap_ns = self.now_ns + int(round(self.params["costmap_period"] * 1e9))
             self.pub_costmap.publish(self._costmap_msg(self.world.local_costmap(self.params["costmap_size"])))
 
-    def _pose(self, x: float, y: float, yaw: float):
-        msg = self.node.msg
-        return msg("geometry_msgs/msg/Pose")(
-            position=msg("geometry_msgs/msg/Point")(x=float(x), y=float(y), z=0.0),
-            orientation=msg("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)))
-
-    def _costmap_msg(self, costmap):
-        node = self.node
-        info = node.msg("nav_msgs/msg/MapMetaData")(
-            map_load_time=wire.make_time(node, self.now_ns), resolution=float(costmap.resolution_m),
-            width=int(costmap.width), height=int(costmap.height),
-            origin=self._pose(costmap.origin_xy[0], costmap.origin_xy[1], 0.0))
-        return node.msg(nav.OCCUPANCY_GRID)(header=wire.make_header(node, self.now_ns, self.params["frame_id"]),
-                                            info=info, data=node.pack(np.ascontiguousarray(costmap.data, np.int8)
-                                                                      .reshape(-1)))
+    def _costmap_msg(self, costmap: Costmap) -> OccupancyGrid:
+        info = MapMetaData(map_load_time=Time(nanoseconds=self.now_ns).to_msg(),
+                           resolution=float(costmap.resolution_m), width=int(costmap.width),
+                           height=int(costmap.height), origin=_pose(*costmap.origin_xy))
+        return OccupancyGrid(header=self._header(), info=info, data=pack(np.asarray(costmap.data, np.int8).reshape(-1)))
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_node(lambda mw: LoopbackRobotNode(mw), argv)
+    return run_node(LoopbackRobotNode, argv)
 
 
 if __name__ == "__main__":

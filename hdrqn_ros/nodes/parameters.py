@@ -6,8 +6,8 @@ describe`` shows: description, type, range, ``read_only`` unless ``live``), and 
 callback per node checks every value against its declaration: the values the node starts
 with (``--ros-args -p``, ``--params-file``, ``parameter_overrides``) and every later
 ``ros2 param set``. rclpy itself enforces the type, the range and ``read_only``; the
-callback adds what a descriptor cannot say (a set of choices, > 0, NaN) and hands accepted
-live values to the node. No rule is checked a second time in node code.
+callback adds what a descriptor cannot say (a set of choices, > 0, NaN or infinity) and
+hands accepted live values to the node. No rule is checked a second time in node code.
 """
 from __future__ import annotations
 
@@ -47,8 +47,8 @@ class Param:
         if self.choices and value not in self.choices:
             return f"parameter {name} must be one of {list(self.choices)}, got {value!r}"
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            if isinstance(value, float) and math.isnan(value):
-                return f"parameter {name} must be a number, got nan"
+            if isinstance(value, float) and not math.isfinite(value):
+                return f"parameter {name} must be a finite number, got {value!r}"
             if self.positive and not value > 0:
                 return f"parameter {name} must be > 0, got {value!r}"
             if (self.low is not None and value < self.low) or (self.high is not None and value > self.high):
@@ -97,8 +97,8 @@ def declare_parameters(node: Node, table: dict[str, Param], apply: Callable[[str
                 continue
             if managed and not declaring and not param.live and not configurable():
                 return SetParametersResult(successful=False, reason=(
-                    f"parameter {parameter.name} is read when the node configures: it changes only while the node "
-                    f"is unconfigured (deactivate and cleanup first)"))
+                    f"parameter {parameter.name} is read-only once the node is configured: it changes only while "
+                    f"the node is unconfigured (deactivate and cleanup first)"))
             if why := param.refusal(parameter.name, parameter.value):
                 return SetParametersResult(successful=False, reason=why)
         return SetParametersResult(successful=True)

@@ -107,6 +107,8 @@ def run_node(make: Callable[..., Node], argv: list[str] | None = None,
         except RuntimeError as exc:  # rcl's argument errors
             raise NodeConfigError(f"rclpy.init rejected the ROS arguments: {exc}") from None
         node = make(context=context)
+        if managed and not isinstance(node, LifecycleNode):
+            raise NodeConfigError(f"{node.get_name()} has no managed (lifecycle) mode: drop {MANAGED_FLAG}")
         node.get_logger().info(f"rclpy on {network}, domain {context.get_domain_id()}")
         executor = make_executor(context)
         executor.add_node(node)

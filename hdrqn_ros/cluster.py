@@ -42,7 +42,7 @@ INSTALL_HINT = install_command("cluster")
 USAGE_STATS_ENV = "RAY_USAGE_STATS_ENABLED"
 REPORT_S = 2.0
 """Seconds between a task's reports of its run's episodes to the progress board."""
-TRAIN_CSVS = ("train.csv", "visits.csv", "options.csv", "eval.csv")
+TRAIN_CSVS = ("train.csv", "visits.csv", "options.csv", "eval.csv", "losses.csv")
 """Metrics tables with an ``episode`` first column (trimmed to the checkpoint on resume)."""
 
 

@@ -103,6 +103,8 @@ class TrainConfig(_Strict):
     eval_every: int = Field(500, ge=0, description="episodes between greedy evaluations (0: never)")
     eval_episodes: int = Field(100, ge=1, le=100_000)
     checkpoint_every: int = Field(1000, ge=1, description="episodes between checkpoints")
+    log_every_updates: int = Field(100, ge=1, description="updates of a controller per row of losses.csv "
+                                   "(the means of its TD loss, Q, target and gradient norm over them)")
     save_replay: bool = Field(True, description="write the replay memory beside each checkpoint "
                               "(checkpoints/replay-*.safetensors) and restore it on --resume; false for huge "
                               "replays (a resumed run then starts with an empty replay)")

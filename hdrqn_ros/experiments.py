@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 BASELINES = ("hdrqn-v2", "hdrqn-v1", "hdqn", "drqn", "dqn")
-RUN_METRICS = ("train.csv", "eval.csv", "visits.csv", "options.csv", "phase1.json", "phase1.md")
+RUN_METRICS = ("train.csv", "eval.csv", "losses.csv", "visits.csv", "options.csv", "phase1.json", "phase1.md")
 """A run's metrics files (:mod:`hdrqn_ros.training.metrics`, the phase-1 report)."""
 
 

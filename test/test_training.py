@@ -103,6 +103,89 @@ def test_every_algorithm_trains_and_writes_its_run_directory(algo, tmp_path):
     assert summary["final_eval"]["episodes"] == 2
 
 
+def test_each_controllers_losses_are_logged_every_few_updates(tmp_path):
+    """Per controller, every ``log_every_updates`` updates: a losses.csv row of the means of
+    TD loss, Q of the taken actions, target and gradient norm; TensorBoard's
+    ``losses/<controller>/<stat>``; the latest TD loss and Q in train.csv's episode rows."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from hdrqn_ros.training.plots import read_csv, read_losses
+
+    trainer = Trainer(tiny(log_every_updates=4), tmp_path, progress=False, tensorboard=True)
+    trainer.run()
+    header = (tmp_path / "losses.csv").read_text().splitlines()[0]
+    assert header == "episode,env_steps,updates,controller,td_loss,q_taken,target,grad_norm"
+    losses, train = read_losses(tmp_path / "losses.csv"), read_csv(tmp_path / "train.csv")
+    for ctrl in (trainer.agent.sub, trainer.agent.meta):
+        rows = losses[ctrl.name]
+        assert rows["updates"].tolist() == list(range(4, ctrl.updates + 1, 4)) and len(rows["updates"]) >= 3
+        assert np.isfinite(np.stack(list(rows.values()))).all() and (rows["grad_norm"] > 0).all()
+        assert (rows["td_loss"] > 0).all() and not np.array_equal(rows["q_taken"], rows["target"])
+        assert np.diff(rows["env_steps"]).min() > 0 and np.diff(rows["episode"]).min() >= 0
+        # train.csv: the latest row as the episode ended (empty before the first one)
+        for stat in ("td_loss", "q_taken"):
+            column = train[f"{ctrl.name}_{stat}"]
+            assert np.isnan(column[0]) and column[-1] == rows[stat][-1]
+            assert set(column[~np.isnan(column)]) <= set(rows[stat])
+    tags = EventAccumulator(str(tmp_path / "tb")).Reload().Tags()["scalars"]
+    stats = ("td_loss", "q_taken", "target", "grad_norm")
+    assert {f"losses/{c}/{stat}" for c in ("sub", "meta") for stat in stats} <= set(tags)
+    assert "train/success" in tags and not any(tag.startswith("train/sub_") for tag in tags)
+
+
+def test_update_means_average_each_controller_over_its_own_updates():
+    from hdrqn_ros.agents.controller import UpdateStats
+    from hdrqn_ros.training.update_means import UpdateMeans
+
+    means = UpdateMeans(every=2)
+
+    def stats(x):
+        return UpdateStats(*(torch.tensor(float(x + i)) for i in range(4)))
+
+    assert means.add("sub", stats(1)) is None
+    assert means.add("meta", stats(10)) is None
+    assert means.add("sub", stats(3)) == {"td_loss": 2.0, "q_taken": 3.0, "target": 4.0, "grad_norm": 5.0}
+    assert means.add("sub", stats(5)) is None  # a new block
+    assert means.add("meta", stats(20)) == {"td_loss": 15.0, "q_taken": 16.0, "target": 17.0, "grad_norm": 18.0}
+
+
+def test_a_run_begun_before_the_loss_columns_keeps_its_train_csv_header(tmp_path):
+    """Resuming a run whose train.csv has no loss columns appends rows under its own header."""
+    from hdrqn_ros.training.metrics import TRAIN_COLUMNS, MetricsLog
+    from hdrqn_ros.training.plots import read_csv
+
+    old = ",".join(TRAIN_COLUMNS)
+    (tmp_path / "train.csv").write_text(old + "\n" + ",".join(["1"] * len(TRAIN_COLUMNS)) + "\n")
+    log = MetricsLog(tmp_path, tensorboard=False, controllers=("sub", "meta"))
+    log.train({**dict.fromkeys(TRAIN_COLUMNS, 2), "sub_td_loss": 0.5, "sub_q_taken": 0.1})
+    log.close()
+    lines = (tmp_path / "train.csv").read_text().splitlines()
+    assert lines == [old, ",".join(["1"] * len(TRAIN_COLUMNS)), ",".join(["2"] * len(TRAIN_COLUMNS))]
+    assert read_csv(tmp_path / "train.csv")["episode"].tolist() == [1.0, 2.0]
+
+
+def test_curves_show_each_controllers_losses_when_the_run_has_them(tmp_path):
+    """``hdrqn plot``'s figure gains a row of loss panels (TD loss, mean Q, gradient norm per
+    controller) for a run with losses.csv; a run without one (older runs) still plots."""
+    from matplotlib.image import imread
+
+    from hdrqn_ros.training.metrics import TRAIN_COLUMNS
+    from hdrqn_ros.training.plots import plot_runs
+
+    run = tmp_path / "run"
+    run.mkdir()
+    rows = [",".join(str(e if c == "episode" else 1) for c in TRAIN_COLUMNS) + ("," if e < 3 else ",0.5")
+            for e in range(1, 6)]
+    (run / "train.csv").write_text("\n".join([",".join(TRAIN_COLUMNS + ["sub_td_loss"]), *rows]) + "\n")
+    (run / "losses.csv").write_text("episode,env_steps,updates,controller,td_loss,q_taken,target,grad_norm\n"
+                                    "2,100,4,sub,0.5,0.1,0.2,3\n3,110,8,sub,0.4,0.2,0.3,2\n"
+                                    "3,120,4,meta,0.05,0.7,0.8,1\n4,150,12,sub,0.3,0.3,0.3,1\n")
+    with_losses = imread(plot_runs([run], tmp_path / "with.png", window=2)).shape[0]
+    (run / "losses.csv").unlink()
+    without = imread(plot_runs([run], tmp_path / "without.png", window=2)).shape[0]
+    assert with_losses == 3 * without // 2  # three rows of panels instead of two
+
+
 def test_resume_continues_counters_and_csv(tmp_path):
     Trainer(tiny(episodes=4), tmp_path, progress=False, tensorboard=False).run()
     first = load_checkpoint(tmp_path / "checkpoints" / "last.pt")["progress"]

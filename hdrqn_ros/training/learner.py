@@ -1,6 +1,7 @@
 """Algorithm 1's learning part, shared by the in-process trainer and the learner node:
 the agent and its replay, epsilon schedules, one update of each controller every
-``update_every`` env steps, greedy evaluations, checkpoints and metrics."""
+``update_every`` env steps, greedy evaluations, checkpoints and metrics (the updates'
+losses among them)."""
 from __future__ import annotations
 
 import json
@@ -16,14 +17,16 @@ import torch
 import yaml
 
 from hdrqn_ros.agents.algorithms import Agent
+from hdrqn_ros.agents.controller import Controller, UpdateStats
 from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from hdrqn_ros.training.episodes import EpisodeBuilder, EpisodeStats, FinishedEpisode
 from hdrqn_ros.training.interrupts import stop_between_steps
-from hdrqn_ros.training.metrics import MetricsLog
+from hdrqn_ros.training.metrics import TRAIN_LOSS_STATS, MetricsLog
 from hdrqn_ros.training.replay_snapshot import load_replay_snapshot, remove_other_snapshots, save_replay_snapshot
 from hdrqn_ros.training.rollout import Rollout
+from hdrqn_ros.training.update_means import UpdateMeans
 
 EVAL_SEED_OFFSET = 1_000_003
 """Evaluation environments use ``seed + EVAL_SEED_OFFSET``: the same held-out episodes
@@ -139,7 +142,9 @@ class Learner:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         (self.run_dir / "config.yaml").write_text(yaml.safe_dump(cfg.model_dump(), sort_keys=False))
         self.log = MetricsLog(self.run_dir, tensorboard=tensorboard, subgoal_names=self.subgoal_names,
-                              options=self.agent.meta is not None)
+                              options=self.agent.meta is not None, controllers=tuple(self.replays()))
+        self.update_means = UpdateMeans(cfg.log_every_updates)
+        self.latest_losses: dict[str, float] = {}  # train.csv's <controller>_<stat>: losses.csv's latest
         self.last_eval: dict | None = None
         self.recent: deque[EpisodeStats] = deque(maxlen=100)  # the last training episodes
         self._pending_updates = 0
@@ -247,14 +252,16 @@ class Learner:
 
     def log_episode(self, stats: EpisodeStats, eps_sub: float, eps_meta: float, episode: int | None = None) -> None:
         """One row of ``train.csv`` / TensorBoard (and of ``visits.csv``, ``options.csv``) for
-        a finished episode; it also joins the last 100 (``train_success_last100``)."""
+        a finished episode, with the latest TD loss and Q of each controller (empty before its
+        first ``losses.csv`` row); it also joins the last 100 (``train_success_last100``)."""
         episode = self.episodes if episode is None else episode
         self.recent.append(stats)
         self.log.subgoals(episode, stats.visits, stats.option_log)
         self.log.train({"episode": episode, "env_steps": self.env_steps,
                         "steps": stats.steps, "reward": stats.classical, "extrinsic": stats.extrinsic,
                         "intrinsic": stats.intrinsic, "success": int(stats.success), "options": stats.options,
-                        "eps_sub": round(eps_sub, 4), "eps_meta": round(eps_meta, 4), "wall_s": round(self.wall_s, 2)})
+                        "eps_sub": round(eps_sub, 4), "eps_meta": round(eps_meta, 4), "wall_s": round(self.wall_s, 2),
+                        **self.latest_losses})
 
     # -- updates ---------------------------------------------------------------------------
     def add_steps(self, n: int) -> None:
@@ -285,17 +292,29 @@ class Learner:
           phase 1 it picks subgoals at random and does not learn).
 
         The meta update runs in a second thread beside the sub update (torch releases the
-        GIL in its kernels) when ``parallel_updates``."""
+        GIL in its kernels) when ``parallel_updates``. Each update's statistics go to
+        ``losses.csv`` (:meth:`_record`)."""
         meta, sub = self.agent.meta, self.agent.sub
         phase2 = self.episodes >= self.cfg.sub_only_episodes
         meta_due = meta is not None and phase2 and self._has_data(meta, offline)
         pending = self._meta_thread.submit(meta.update) if meta_due and self._meta_thread else None
         if self._has_data(sub, offline):
-            sub.update()
+            self._record(sub, sub.update())
         if pending is not None:
-            pending.result()
+            self._record(meta, pending.result())
         elif meta_due:
-            meta.update()
+            self._record(meta, meta.update())
+
+    def _record(self, ctrl: Controller, stats: UpdateStats) -> None:
+        """Add one update of ``ctrl``; every ``log_every_updates`` of its updates, a row of
+        their means to ``losses.csv`` / TensorBoard, and the latest into ``train.csv``."""
+        means = self.update_means.add(ctrl.name, stats)
+        if means is None:
+            return
+        means = {stat: float(f"{value:.6g}") for stat, value in means.items()}
+        self.log.losses({"episode": self.episodes, "env_steps": self.env_steps, "updates": ctrl.updates,
+                         "controller": ctrl.name, **means})
+        self.latest_losses.update({f"{ctrl.name}_{stat}": means[stat] for stat in TRAIN_LOSS_STATS})
 
     def _has_data(self, ctrl, offline: bool) -> bool:
         return len(ctrl.replay) >= ctrl.cfg.batch_size and (offline or self.env_steps >= self.cfg.learning_starts)

@@ -1,6 +1,7 @@
 """Learning curves like thesis figures 4.6-4.11: reward, steps, extrinsic and intrinsic
-reward and success ratio per episode, as a moving average; runs sharing a label (seeds)
-are drawn as their mean with a min-max band."""
+reward and success ratio per episode, as a moving average, and (runs with ``losses.csv``)
+each controller's TD loss, mean Q and gradient norm; runs sharing a label (seeds) are drawn
+as their mean with a min-max band."""
 from __future__ import annotations
 
 import csv
@@ -12,17 +13,39 @@ import yaml
 
 PANELS = [("reward", "reward (classical)"), ("steps", "steps per episode"), ("extrinsic", "extrinsic reward"),
           ("intrinsic", "intrinsic reward"), ("success", "ordered success ratio")]
+LOSS_PANELS = [("td_loss", "TD loss"), ("q_taken", "mean Q of the taken actions"),
+               ("grad_norm", "gradient norm before clipping")]
+CONTROLLER_LINES = {"sub": "-", "meta": "--"}
+"""Line style of each controller in the loss panels."""
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    if not path.exists():
+        return []
+    with open(path, newline="", encoding="utf-8") as f:
+        return list(csv.DictReader(f))
+
+
+def _columns(rows: list[dict[str, str]], skip: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """``rows``' columns (but ``skip``) as float arrays; an empty cell is NaN."""
+    return {k: np.array([float(r[k]) if r[k] else np.nan for r in rows]) for k in rows[0] if k not in skip}
 
 
 def read_csv(path: Path) -> dict[str, np.ndarray]:
-    """Columns of a metrics CSV as float arrays (empty dict for a missing/empty file)."""
-    if not path.exists():
-        return {}
-    with open(path, newline="", encoding="utf-8") as f:
-        rows = list(csv.DictReader(f))
-    if not rows:
-        return {}
-    return {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
+    """Columns of a metrics CSV as float arrays, NaN for an empty cell (empty dict for a
+    missing/empty file)."""
+    rows = _rows(path)
+    return _columns(rows) if rows else {}
+
+
+def read_losses(path: Path) -> dict[str, dict[str, np.ndarray]]:
+    """``losses.csv``'s rows per controller: controller -> column -> float array (empty dict
+    for a missing/empty file)."""
+    rows = _rows(path)
+    by_controller: dict[str, list] = defaultdict(list)
+    for row in rows:
+        by_controller[row["controller"]].append(row)
+    return {name: _columns(mine, skip=("controller",)) for name, mine in by_controller.items()}
 
 
 def moving_average(x: np.ndarray, window: int) -> np.ndarray:
@@ -53,7 +76,8 @@ def plot_runs(runs: list[Path], out: Path, window: int = 200, labels: dict[str, 
               title: str = "") -> Path:
     """Draw the curves of ``runs`` into ``out`` (PNG); returns ``out``. ``title`` heads the figure.
 
-    Raises ``FileNotFoundError`` when a run has no ``train.csv``.
+    A third row of panels shows each controller's ``losses.csv`` (sub: solid, meta: dashed)
+    when a run has one. Raises ``FileNotFoundError`` when a run has no ``train.csv``.
     """
     import matplotlib
 
@@ -63,6 +87,7 @@ def plot_runs(runs: list[Path], out: Path, window: int = 200, labels: dict[str, 
     labels = labels or {}
     groups: dict[str, list[dict]] = defaultdict(list)
     evals: dict[str, list[dict]] = defaultdict(list)
+    losses: dict[str, list[dict]] = defaultdict(list)
     for run in runs:
         train = read_csv(run / "train.csv")
         if not train:
@@ -72,8 +97,11 @@ def plot_runs(runs: list[Path], out: Path, window: int = 200, labels: dict[str, 
         ev = read_csv(run / "eval.csv")
         if ev:
             evals[label].append(ev)
+        if run_losses := read_losses(run / "losses.csv"):
+            losses[label].append(run_losses)
 
-    fig, axes = plt.subplots(2, 3, figsize=(15, 8))
+    rows = 3 if losses else 2
+    fig, axes = plt.subplots(rows, 3, figsize=(15, 4 * rows))
     for ax, (key, panel) in zip(axes.flat, PANELS):
         for i, (label, tables) in enumerate(groups.items()):
             n = min(len(t["episode"]) for t in tables)
@@ -95,12 +123,36 @@ def plot_runs(runs: list[Path], out: Path, window: int = 200, labels: dict[str, 
     ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
     axes.flat[0].legend(loc="best", fontsize=8)
-    fig.suptitle((f"{title}\n" if title else "") + f"moving average over {window} episodes; band: min-max over runs")
+    if losses:
+        _draw_losses(axes[2], losses, list(groups))
+    fig.suptitle((f"{title}\n" if title else "") + f"moving average over {window} episodes"
+                 + ("; losses: means of blocks of updates" if losses else "") + "; band: min-max over runs")
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=90)
     plt.close(fig)
     return out
+
+
+def _draw_losses(axes, losses: dict[str, list[dict]], labels: list[str]) -> None:
+    """The loss panels: per label (its colour, as in the other panels) and controller, the
+    mean over its runs of ``losses.csv``'s rows (each a mean over ``log_every_updates``
+    updates) against the episode."""
+    for ax, (key, panel) in zip(axes, LOSS_PANELS):
+        for label, runs in losses.items():
+            for controller, line in CONTROLLER_LINES.items():
+                tables = [run[controller] for run in runs if controller in run]
+                if not tables:
+                    continue
+                n = min(len(t["episode"]) for t in tables)
+                curves = np.stack([t[key][:n] for t in tables])
+                draw_mean_band(ax, tables[0]["episode"][:n], curves, f"C{labels.index(label)}",
+                               f"{label} {controller}", line)
+        ax.set_title(panel)
+        ax.set_xlabel("episode")
+        ax.grid(alpha=0.3)
+    axes[0].set_yscale("log")
+    axes[0].legend(loc="best", fontsize=8)
 
 
 def _figure(ncols: int = 1, width: float = 8.0):

@@ -1,11 +1,11 @@
 """Per-decision latency of a controller node's acting code, ONNX (``policy:=``) against torch
 (``checkpoint:=``): one fresh process per path and role builds its acting network with the
-nodes' own :func:`hdrqn_ros.nodes.common.make_acting_network` (a stub in place of the
-middleware node) and times the node's decision call on
+nodes' own :func:`hdrqn_ros.nodes.acting.make_acting_network` (a stub in place of the
+rclpy node) and times the node's decision call on
 :class:`~hdrqn_ros.agents.policy.HierarchicalPolicy` (N = 1): the sub-controller's
 ``act`` on a stacked (1, 44, 44, 6) input, the hDRQNv2 meta-controller's ``end_options`` +
 ``choose_subgoals``. Prints one JSON object: median and p90 ms per decision, whether torch
-was imported, and VmRSS (without the middleware; the node processes' resident memory
+was imported, and VmRSS (rclpy imported, no DDS participant; the node processes' resident memory
 with it is measured by ``test/test_deploy_nodes.py``).
 
     python benchmarks/bench_deploy_nodes.py [--decisions 2000]
@@ -27,12 +27,13 @@ import json, sys, time, types, logging
 import numpy as np
 from hdrqn_ros.agents.policy import HierarchicalPolicy
 from hdrqn_ros.deploy.specs import ALGO_SPECS, stack_subgoal
-from hdrqn_ros.nodes.common import make_acting_network
+from hdrqn_ros.nodes.acting import make_acting_network
 
 role, acting, decisions = sys.argv[1], sys.argv[2], int(sys.argv[3])
-node = types.SimpleNamespace(logger=logging.getLogger("bench"), create_subscription=lambda *a, **k: None)
+node = types.SimpleNamespace(get_logger=lambda: logging.getLogger("bench"), resolve_topic_name=lambda topic: topic,
+                             create_subscription=lambda *a, **k: None)
 params = {"algo": "hdrqn-v2", "env": sys.argv[4], "view": "5", "seed": 0, "epsilon": 0.0, "meta_state": "c",
-          "checkpoint": "", "policy": "", **dict([acting.split(":=", 1)])}
+          "checkpoint": "", "policy": "", "max_message_bytes": 1 << 26, **dict([acting.split(":=", 1)])}
 net = make_acting_network(node, role, params, 0.0)
 one = np.ones(1, bool)
 policy = HierarchicalPolicy(1, net if role == "sub" else None, net if role == "meta" else None, "state")

@@ -1,16 +1,18 @@
 """A controller node's acting network from an exported policy directory (``policy``
 parameter, ``hdrqn export``): numpy and onnxruntime only, so the node process never
 imports torch. Frozen: the learner's weights topic is not subscribed. Imported only when
-a node is given ``policy`` (:func:`hdrqn_ros.nodes.common.make_acting_network`)."""
+a node is given ``policy`` (:func:`hdrqn_ros.nodes.acting.make_acting_network`)."""
 from __future__ import annotations
 
 import sys
 
 import numpy as np
+from rclpy.node import Node
 
 from hdrqn_ros.deploy.onnx_policy import OnnxPolicy
-from hdrqn_ros.middleware import Node
-from hdrqn_ros.nodes.common import ActingNetwork, NodeConfigError, env_kwargs
+from hdrqn_ros.nodes.acting import ActingNetwork
+from hdrqn_ros.nodes.graph_parameters import env_kwargs
+from hdrqn_ros.nodes.parameters import NodeConfigError
 from hdrqn_ros.protocol import wire
 
 
@@ -40,13 +42,14 @@ class OnnxActingNetwork(ActingNetwork):
         if role not in policy.roles:
             raise NodeConfigError(f"policy {directory} has no {role} controller (roles: {list(policy.roles)})")
         trained_view = policy.env_kwargs.get("view")  # absent: the env's default
+        logger = node.get_logger()
         if (policy.env and policy.env != params["env"]) or \
                 (trained_view is not None and env_kwargs(params["env"], params["view"]).get("view") != trained_view):
-            node.logger.warning("policy %s was exported from a run on %s %s; this node acts on %s view %s",
-                                directory, policy.env, policy.env_kwargs, params["env"], params["view"])
-        node.logger.info("acting with the exported %s policy %s (%s, onnxruntime; torch imported: %s)",
-                         role, directory, policy.algo, "torch" in sys.modules)
-        node.logger.info("an exported policy is frozen: not subscribing to the learner's %s", wire.WEIGHTS[role])
+            logger.warning(f"policy {directory} was exported from a run on {policy.env} {policy.env_kwargs}; "
+                           f"this node acts on {params['env']} view {params['view']}")
+        logger.info(f"acting with the exported {role} policy {directory} ({policy.algo}, onnxruntime; "
+                    f"torch imported: {'torch' in sys.modules})")
+        logger.info(f"an exported policy is frozen: not subscribing to the learner's {wire.WEIGHTS[role]}")
 
     def act(self, x: np.ndarray, state):
         return self.policy.act(self.role, x, state)

@@ -1,15 +1,19 @@
 """A controller node's torch acting network: random or ``checkpoint`` weights, then the
 learner's ``/learner/*_weights`` topic. Imported only when a node acts with torch
-(:func:`hdrqn_ros.nodes.common.make_acting_network`)."""
+(:func:`hdrqn_ros.nodes.acting.make_acting_network`)."""
 from __future__ import annotations
 
 import numpy as np
 import torch
+from rclpy.node import Node
+from std_msgs.msg import UInt8MultiArray
 
 from hdrqn_ros.agents.algorithms import make_network
 from hdrqn_ros.agents.weights import WeightsError, load_weights
-from hdrqn_ros.middleware import LATCHED_QOS, Node
-from hdrqn_ros.nodes.common import ActingNetwork
+from hdrqn_ros.nodes.acting import ActingNetwork
+from hdrqn_ros.nodes.node_logger import python_logger
+from hdrqn_ros.nodes.qos import LATCHED_QOS
+from hdrqn_ros.nodes.ros_messages import bounded_subscription
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.throttle import Throttle
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint
@@ -29,8 +33,10 @@ class TorchActingNetwork(ActingNetwork):
         self.weights_version = -1
         if params["checkpoint"]:
             self._load_checkpoint(params["checkpoint"])
-        self.rejected_weights = Throttle(node.logger, f"rejected {role} weights on {wire.WEIGHTS[role]}")
-        node.create_subscription(wire.BYTES, wire.WEIGHTS[role], self._on_weights, LATCHED_QOS)
+        logger = python_logger(node)
+        self.rejected_weights = Throttle(logger, f"rejected {role} weights on {wire.WEIGHTS[role]}")
+        bounded_subscription(node, UInt8MultiArray, wire.WEIGHTS[role], self._on_weights, LATCHED_QOS,
+                             params["max_message_bytes"], logger)
 
     def _load_checkpoint(self, path: str) -> None:
         payload = load_checkpoint(path)
@@ -40,9 +46,9 @@ class TorchActingNetwork(ActingNetwork):
             raise CheckpointError(f"{path} has no {self.role} network for this algo: "
                                   f"{str(exc).splitlines()[0]}") from None
         self.weights_version = 0
-        self.node.logger.info("loaded %s weights from %s", self.role, path)
+        self.node.get_logger().info(f"loaded {self.role} weights from {path}")
 
-    def _on_weights(self, msg) -> None:
+    def _on_weights(self, msg: UInt8MultiArray) -> None:
         try:
             version = wire.read_weights_version(msg)
             load_weights(self.net, wire.as_bytes(msg.data))
@@ -50,7 +56,7 @@ class TorchActingNetwork(ActingNetwork):
             self.rejected_weights.warn(exc)
             return
         if self.weights_version < 0 or version // 100 > self.weights_version // 100:
-            self.node.logger.info("acting with the learner's %s weights of update %d", self.role, version)
+            self.node.get_logger().info(f"acting with the learner's {self.role} weights of update {version}")
         self.weights_version = version
 
     def act(self, x: np.ndarray, state):

@@ -1,7 +1,4 @@
-"""What every node executable shares: start-up, parameters, the spin loop, clean exit.
-
-Imports no torch (nor onnxruntime): the controllers' torch and ONNX acting networks are
-imported when :func:`make_acting_network` builds one."""
+"""What every node executable shares: start-up, parameters, the spin loop, clean exit."""
 from __future__ import annotations
 
 import ctypes
@@ -12,11 +9,9 @@ import sys
 import threading
 from typing import Any, Callable
 
-import numpy as np
-
 from hdrqn_ros.deploy.specs import ALGO_SPECS, PolicyError
 from hdrqn_ros.envs.registration import GRID_IDS, MONTEZUMA_IDS, make_batch
-from hdrqn_ros.extras import MissingExtra, require
+from hdrqn_ros.extras import MissingExtra
 from hdrqn_ros.middleware import (BackendError, Middleware, Node, ParameterError, ParameterRule, RosArgsError,
                                   open_middleware)
 from hdrqn_ros.middleware.ros_args import split_ros_args
@@ -84,61 +79,6 @@ def domain_sizes(env_id: str, view: str) -> tuple[int, int]:
     """(num_actions, num_subgoals) of the domain."""
     probe = make_batch(env_id, 1, **env_kwargs(env_id, view))
     return probe.num_actions, probe.num_subgoals
-
-
-class ActingNetwork:
-    """A controller's Q-network for acting in a node, and its exploration (``epsilon``,
-    ``rng``): what :class:`~hdrqn_ros.agents.policy.HierarchicalPolicy` calls
-    (``act(x, state)``, ``initial_state(batch_size)``). :func:`make_acting_network` builds
-    one of its two kinds: torch weights (``checkpoint`` and the learner's weights topic,
-    :class:`hdrqn_ros.nodes.acting_torch.TorchActingNetwork`) or an exported ONNX policy
-    (``policy``, numpy and onnxruntime only, frozen:
-    :class:`hdrqn_ros.nodes.acting_onnx.OnnxActingNetwork`)."""
-
-    def __init__(self, node: Node, role: str, params: dict, default_epsilon: float,
-                 num_actions: int, num_subgoals: int):
-        self.node, self.role = node, role
-        self.num_actions, self.num_subgoals = num_actions, num_subgoals
-        self.rng = np.random.default_rng(params["seed"] + (7 if role == "meta" else 11))
-        self.epsilon = default_epsilon
-        self.fixed_epsilon: float | None = None
-        self.set_fixed_epsilon(params["epsilon"])
-
-    def set_fixed_epsilon(self, epsilon: float) -> None:
-        """``epsilon`` >= 0: explore at this rate from now on; < 0: the learner's schedule again."""
-        self.fixed_epsilon = epsilon if epsilon >= 0 else None
-        if self.fixed_epsilon is not None:
-            self.epsilon = self.fixed_epsilon
-
-    def on_credit(self, credit: dict) -> None:
-        if self.fixed_epsilon is None:
-            self.epsilon = credit["eps_meta" if self.role == "meta" else "eps_sub"]
-
-    def act(self, x: np.ndarray, state):
-        """``x`` (B, ...) -> (Q-values (B, n) numpy, new LSTM state)."""
-        raise NotImplementedError
-
-    def initial_state(self, batch_size: int):
-        raise NotImplementedError
-
-
-def make_acting_network(node: Node, role: str, params: dict, default_epsilon: float) -> ActingNetwork:
-    """The ``role`` controller's acting network from the node's parameters: an exported
-    policy with ``policy`` (torch is never imported), else torch weights (random, or
-    ``checkpoint``'s). ``policy`` and ``checkpoint`` together: :class:`NodeConfigError`."""
-    check_algo(params["algo"])
-    if params["policy"] and params["checkpoint"]:
-        raise NodeConfigError(f"give either policy ({params['policy']}) or checkpoint ({params['checkpoint']}), "
-                              f"not both: an exported policy is acted from as it is")
-    num_actions, num_subgoals = domain_sizes(params["env"], params["view"])
-    if params["policy"]:
-        require("deploy", f"policy:={params['policy']} (acting from an exported policy)", ("onnxruntime",))
-        from hdrqn_ros.nodes.acting_onnx import OnnxActingNetwork
-
-        return OnnxActingNetwork(node, role, params, default_epsilon, num_actions, num_subgoals)
-    from hdrqn_ros.nodes.acting_torch import TorchActingNetwork
-
-    return TorchActingNetwork(node, role, params, default_epsilon, num_actions, num_subgoals)
 
 
 STARTUP_ERRORS = (NodeConfigError, ParameterError, RosArgsError, BackendError, PolicyError, MissingExtra,

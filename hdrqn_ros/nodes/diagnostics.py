@@ -10,23 +10,25 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
 
 from hdrqn_ros.hashing import file_sha256
 
 DIAGNOSTICS = "/diagnostics"
-DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
-OK, WARN, ERROR = 0, 1, 2
+OK, WARN, ERROR = (int.from_bytes(level, "little") for level in (DiagnosticStatus.OK, DiagnosticStatus.WARN,
+                                                                  DiagnosticStatus.ERROR))
 WINDOW_S = 10.0
 """Decisions per second and latency are over the last this many seconds."""
 
 
 def policy_source(params: dict) -> str:
     """The acting weights: an exported policy or a checkpoint, with its sha256 (first 12 hex)."""
-    from pathlib import Path
-
     if params.get("policy"):
         files = sorted(Path(params["policy"]).glob("*.onnx"))
         return f"onnx {params['policy']} " + " ".join(f"{f.name}:{file_sha256(f)[:12]}" for f in files)
@@ -36,14 +38,15 @@ def policy_source(params: dict) -> str:
 
 
 class Diagnostics:
-    """Publishes ``check()``'s ``(level, message, values)`` with the decision figures every ``period_s``."""
+    """Publishes ``check()``'s ``(level, message, values)`` with the decision figures every
+    ``period_s`` of wall time (also on simulated time)."""
 
-    def __init__(self, node, check: Callable[[], tuple[int, str, dict[str, str]]], period_s: float = 1.0):
+    def __init__(self, node: Node, check: Callable[[], tuple[int, str, dict[str, str]]], period_s: float = 1.0):
         self.node, self.check = node, check
-        self.name = f"hdrqn_ros: {node.fully_qualified_name}"
+        self.name = f"hdrqn_ros: {node.get_fully_qualified_name()}"
         self.decisions: deque[tuple[float, float]] = deque()  # (monotonic time, seconds it took)
-        self.pub = node.create_publisher(DIAGNOSTIC_ARRAY, DIAGNOSTICS)
-        node.create_timer(period_s, self.publish)
+        self.pub = node.create_publisher(DiagnosticArray, DIAGNOSTICS, 10)
+        node.create_timer(period_s, self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def decision(self, seconds: float) -> None:
         """One decision took ``seconds``."""
@@ -63,14 +66,10 @@ class Diagnostics:
         return level, message, {**values, **self.figures()}
 
     def publish(self) -> None:
-        node = self.node
         level, message, values = self.status()
-        msg = node.msg
-        key_value = msg("diagnostic_msgs/msg/KeyValue")
-        status = msg("diagnostic_msgs/msg/DiagnosticStatus")(
-            level=bytes([level]) if node.backend_name == "rclpy" else level, name=self.name, message=message,
-            hardware_id=node.name, values=[key_value(key=k, value=str(v)) for k, v in values.items()])
-        stamp = time.time_ns()
-        header = msg("std_msgs/msg/Header")(stamp=msg("builtin_interfaces/msg/Time")(
-            sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id="")
-        self.pub.publish(msg(DIAGNOSTIC_ARRAY)(header=header, status=[status]))
+        status = DiagnosticStatus(level=bytes([level]), name=self.name, message=message,
+                                  hardware_id=self.node.get_name(),
+                                  values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        self.pub.publish(msg)

@@ -1,8 +1,9 @@
-"""Nav2 adapters: subgoal index -> goal pose, action index -> velocity, local costmap -> observation.
+"""Nav2 tables and conversions: subgoal index -> goal pose, action index -> velocity, local
+costmap -> observation, a robot's pose from its messages.
 
-Pure functions and classes without ROS imports; they only use the port ``node`` to build
-messages (``node.msg``). Units: metres, radians, m/s, rad/s. Observations are
-``(44, 44, 3) uint8`` RGB images in the gridworld's colours (see ``docs/nav2.md``).
+Messages are rclpy's (``geometry_msgs``, ``nav_msgs``). Units: metres, radians, m/s, rad/s.
+Observations are ``(44, 44, 3) uint8`` RGB images in the gridworld's colours (see
+``docs/nav2.md``). Stamps are ``(sec, nanosec)`` or integer nanoseconds (a step key).
 """
 from __future__ import annotations
 
@@ -10,6 +11,9 @@ import math
 from pathlib import Path
 
 import numpy as np
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion, Twist, TwistStamped, Vector3
+from std_msgs.msg import Header
 
 from hdrqn_ros.envs.gridworld import AGENT, FREE, GOAL0, GOAL_NAMES, OUTSIDE, PALETTE, WALL
 from hdrqn_ros.middleware.arrays import as_array
@@ -24,14 +28,6 @@ POSE_TYPES = {"odometry": "nav_msgs/msg/Odometry", "pose": POSE_STAMPED,
               "pose_with_covariance": "geometry_msgs/msg/PoseWithCovarianceStamped"}
 """The robot pose messages a robot-side node reads (``pose_type``): ``/odom``, a
 ``PoseStamped``, ``/amcl_pose``."""
-META_PARAMETERS = {"subgoal_table": "", "subgoal_poses_topic": "", "goal_pose_topic": "goal_pose"}
-"""meta_controller parameters (defaults) for the Nav2 path; '' = not used. The places come
-from a YAML ``subgoal_table`` or a latched ``geometry_msgs/PoseArray`` on ``subgoal_poses_topic``."""
-SUB_PARAMETERS = {"action_table": "", "cmd_vel_topic": "cmd_vel", "observation_source": "topic",
-                  "costmap_topic": "/local_costmap/costmap", "stale_after_s": 5.0}
-"""sub_controller parameters for the Nav2 path; ``observation_source``: 'topic' (the
-environment's or robot_environment's) or 'costmap'; ``stale_after_s``: wall seconds without
-an observation after which the robot is stopped (a zero command)."""
 LETHAL = 65
 """Default threshold: OccupancyGrid cost (0..100) at or above it is drawn as a wall."""
 _POSE_KEYS = {"x", "y", "yaw"}
@@ -86,10 +82,10 @@ def _index(i, n: int, what: str) -> int:
     return int(i)
 
 
-def _time(node, stamp):
+def _time(stamp) -> Time:
     """``builtin_interfaces/Time`` from ``(sec, nanosec)`` or integer nanoseconds."""
     sec, nsec = divmod(int(stamp), 10**9) if isinstance(stamp, (int, np.integer)) else stamp
-    return node.msg("builtin_interfaces/msg/Time")(sec=int(sec), nanosec=int(nsec))
+    return Time(sec=int(sec), nanosec=int(nsec))
 
 
 def yaw_of(q) -> float:
@@ -135,16 +131,12 @@ class SubgoalTable:
     def __len__(self) -> int:
         return len(self.poses)
 
-    def pose_msg(self, node, subgoal, stamp_sec: int = 0, stamp_nanosec: int = 0):
+    def pose_msg(self, subgoal, stamp=(0, 0)) -> PoseStamped:
         """``geometry_msgs/PoseStamped`` of subgoal ``subgoal`` (yaw about z -> quaternion z, w)."""
         x, y, yaw = self.poses[_index(subgoal, len(self), "subgoal")]
-        msg = node.msg
-        return msg(POSE_STAMPED)(
-            header=msg("std_msgs/msg/Header")(stamp=_time(node, (stamp_sec, stamp_nanosec)), frame_id=self.frame_id),
-            pose=msg("geometry_msgs/msg/Pose")(
-                position=msg("geometry_msgs/msg/Point")(x=x, y=y, z=0.0),
-                orientation=msg("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=math.sin(yaw / 2),
-                                                                 w=math.cos(yaw / 2))))
+        return PoseStamped(header=Header(stamp=_time(stamp), frame_id=self.frame_id),
+                           pose=Pose(position=Point(x=x, y=y, z=0.0),
+                                     orientation=Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))))
 
 
 class ActionTable:
@@ -170,23 +162,30 @@ class ActionTable:
     def type_name(self) -> str:
         return TWIST_STAMPED if self.stamped else TWIST
 
-    def _msg(self, node, cmd: dict[str, float], stamp):
-        v3 = node.msg("geometry_msgs/msg/Vector3")
-        twist = node.msg(TWIST)(
-            linear=v3(x=cmd.get("linear_x", 0.0), y=cmd.get("linear_y", 0.0), z=cmd.get("linear_z", 0.0)),
-            angular=v3(x=cmd.get("angular_x", 0.0), y=cmd.get("angular_y", 0.0), z=cmd.get("angular_z", 0.0)))
+    @property
+    def msg_type(self) -> type:
+        """The message class of the commands: ``Twist`` or ``TwistStamped``."""
+        return TwistStamped if self.stamped else Twist
+
+    def moves(self, action: int) -> bool:
+        """Whether action ``action``'s command is not the zero one."""
+        return any(self.commands[_index(action, len(self), "action")].values())
+
+    def _msg(self, cmd: dict[str, float], stamp) -> Twist | TwistStamped:
+        linear, angular = (Vector3(**{axis: cmd.get(f"{kind}_{axis}", 0.0) for axis in "xyz"})
+                           for kind in ("linear", "angular"))
+        twist = Twist(linear=linear, angular=angular)
         if not self.stamped:
             return twist
-        header = node.msg("std_msgs/msg/Header")(stamp=_time(node, stamp), frame_id=self.frame_id)
-        return node.msg(TWIST_STAMPED)(header=header, twist=twist)
+        return TwistStamped(header=Header(stamp=_time(stamp), frame_id=self.frame_id), twist=twist)
 
-    def twist_msg(self, node, action, stamp=(0, 0)):
-        """Command of action ``action``; ``stamp`` (``(sec, nanosec)`` or ns) is used only when stamped."""
-        return self._msg(node, self.commands[_index(action, len(self), "action")], stamp)
+    def twist_msg(self, action, stamp=(0, 0)) -> Twist | TwistStamped:
+        """Command of action ``action``; ``stamp`` is used only when stamped."""
+        return self._msg(self.commands[_index(action, len(self), "action")], stamp)
 
-    def stop_msg(self, node, stamp=(0, 0)):
+    def stop_msg(self, stamp=(0, 0)) -> Twist | TwistStamped:
         """The all-zero command (publish it on shutdown)."""
-        return self._msg(node, {}, stamp)
+        return self._msg({}, stamp)
 
 
 def costmap_to_observation(msg, robot_xy=None, view_cells: int = 5, size: int = 44, *, robot_yaw=None,

@@ -1,0 +1,112 @@
+"""The Nav2 adapters the controllers hand their decisions to: the sub-controller's actions as
+velocity commands (``cmd_vel``), the meta-controller's subgoals as goal poses (``goal_pose``).
+The tables are :mod:`hdrqn_ros.nodes.nav`'s; see ``docs/nav2.md``."""
+from __future__ import annotations
+
+import time
+
+from geometry_msgs.msg import PoseArray, PoseStamped
+from rclpy.clock import Clock, ClockType
+from rclpy.duration import Duration
+
+from hdrqn_ros.nodes.controller_node import ControllerNode
+from hdrqn_ros.nodes.nav import ActionTable, SubgoalTable
+from hdrqn_ros.nodes.parameters import Param
+from hdrqn_ros.nodes.qos import DEFAULT_QOS, LATCHED_QOS
+from hdrqn_ros.nodes.ros_messages import bounded_subscription
+
+SUBGOAL_TABLE = {"subgoal_table": Param("", "YAML table of the places, subgoal index -> pose ('': off)")}
+VELOCITY_PARAMETERS = {
+    "action_table": Param("", "YAML table, action index -> velocity command ('': drive nothing)"),
+    "cmd_vel_topic": Param("cmd_vel", "where velocity commands go"),
+    "stale_after_s": Param(5.0, "wall seconds without an observation after which the robot is stopped (zero "
+                                "command)", live=True, positive=True),
+}
+"""The sub-controller's driving parameters (:class:`VelocityDriver`); ``stale_after_s`` is live."""
+GOAL_PARAMETERS = {
+    **SUBGOAL_TABLE,
+    "subgoal_poses_topic": Param("", "instead of subgoal_table: a latched geometry_msgs/PoseArray of the places"),
+    "goal_pose_topic": Param("goal_pose", "where each new option's place goes (geometry_msgs/PoseStamped)"),
+}
+"""The meta-controller's goal-pose parameters (:class:`GoalPoses`)."""
+DELIVERY_LIMIT_S = 2.0
+"""How long a stopping node waits for every subscriber to acknowledge its zero command."""
+STALE_CHECK_S = 0.05
+"""How often (wall seconds) the driver checks whether its observation went stale."""
+
+
+class VelocityDriver:
+    """Drives the robot with the sub-controller's actions: one command per action on
+    ``cmd_vel_topic`` (the :class:`~hdrqn_ros.nodes.nav.ActionTable`'s ``Twist`` or
+    ``TwistStamped``), the zero command when the episode ends or the node stops, and when no
+    observation came for ``stale_after_s`` (wall time) while the robot moves."""
+
+    def __init__(self, node: ControllerNode, table: ActionTable):
+        self.node, self.table = node, table
+        self.topic = node.resolve_topic_name(node.params["cmd_vel_topic"])
+        self.pub = node.create_publisher(table.msg_type, node.params["cmd_vel_topic"], DEFAULT_QOS)
+        self.observed_at: float | None = None  # when the last observation arrived (monotonic s)
+        self.moving = False  # the last command published was not the zero one
+        node.create_timer(STALE_CHECK_S, self._stop_if_stale, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def command(self, action: int | None, stamp=(0, 0)) -> tuple:
+        """The (publisher, message) that commands ``action`` (``None``: the zero command),
+        stamped ``stamp`` (a step key, ns) if the table is stamped."""
+        self.moving = action is not None and self.table.moves(action)
+        return self.pub, self.table.stop_msg(stamp) if action is None else self.table.twist_msg(action, stamp)
+
+    def observed(self) -> None:
+        """An observation arrived: the commands go on."""
+        self.observed_at = time.monotonic()
+
+    def stale(self) -> bool:
+        """The observation is older than ``stale_after_s``."""
+        return self.observed_at is not None and time.monotonic() - self.observed_at > self.node.params["stale_after_s"]
+
+    def problems(self) -> list[str]:
+        if self.stale():
+            return [f"the observation is older than stale_after_s ({self.node.params['stale_after_s']} s): the robot "
+                    f"is stopped"]
+        return []
+
+    def halt(self) -> None:
+        """The zero command, delivered before the node stops acting (at most :data:`DELIVERY_LIMIT_S`)."""
+        pub, msg = self.command(None)
+        pub.publish(msg)
+        if not pub.wait_for_all_acked(Duration(seconds=DELIVERY_LIMIT_S)):
+            self.node.get_logger().warning(f"the zero command on {self.topic} was not acknowledged by every "
+                                           f"subscriber within {DELIVERY_LIMIT_S:g} s")
+
+    def _stop_if_stale(self) -> None:
+        if self.moving and self.stale():
+            pub, msg = self.command(None)
+            pub.publish(msg)
+            self.node.get_logger().info(
+                f"zero command on {self.topic}: the observation is {time.monotonic() - self.observed_at:.1f} s old "
+                f"(stale_after_s {self.node.params['stale_after_s']})")
+
+
+class GoalPoses:
+    """Sends each new option's subgoal to the robot's navigator as a ``PoseStamped`` on
+    ``goal_pose_topic`` (Nav2's ``goal_pose``): its place from ``subgoal_table``, or from the
+    latest ``PoseArray`` on ``subgoal_poses_topic`` (nothing is sent before one arrives)."""
+
+    def __init__(self, node: ControllerNode, num_subgoals: int):
+        self.node, self.num_subgoals = node, num_subgoals
+        params = node.params
+        self.places = SubgoalTable.load(params["subgoal_table"], num_subgoals) if params["subgoal_table"] else None
+        if params["subgoal_poses_topic"]:
+            bounded_subscription(node, PoseArray, params["subgoal_poses_topic"], self._on_places, LATCHED_QOS,
+                                 params["max_message_bytes"], node.logger)
+        self.pub = node.create_publisher(PoseStamped, params["goal_pose_topic"], DEFAULT_QOS)
+
+    def replies(self, subgoal: int, key: int) -> list[tuple]:
+        """The (publisher, goal pose) of ``subgoal`` stamped ``key``; none while the places are unknown."""
+        return [] if self.places is None else [(self.pub, self.places.pose_msg(subgoal, key))]
+
+    def _on_places(self, msg: PoseArray) -> None:
+        topic = self.node.params["subgoal_poses_topic"]
+        places = self.node.decode(topic, lambda: SubgoalTable.from_pose_array(
+            msg, self.num_subgoals, self.node.resolve_topic_name(topic)))
+        if places is not None:
+            self.places = places

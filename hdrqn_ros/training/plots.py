@@ -137,19 +137,19 @@ def plot_runs(runs: list[Path], out: Path, window: int = 200, labels: dict[str, 
 def _draw_losses(axes, losses: dict[str, list[dict]], labels: list[str]) -> None:
     """The loss panels: per label (its colour, as in the other panels) and controller, the
     mean over its runs of ``losses.csv``'s rows (each a mean over ``log_every_updates``
-    updates) against the episode."""
+    updates) against env steps (rows are far apart in episodes where many end at once)."""
     for ax, (key, panel) in zip(axes, LOSS_PANELS):
         for label, runs in losses.items():
             for controller, line in CONTROLLER_LINES.items():
                 tables = [run[controller] for run in runs if controller in run]
                 if not tables:
                     continue
-                n = min(len(t["episode"]) for t in tables)
+                n = min(len(t["env_steps"]) for t in tables)
                 curves = np.stack([t[key][:n] for t in tables])
-                draw_mean_band(ax, tables[0]["episode"][:n], curves, f"C{labels.index(label)}",
+                draw_mean_band(ax, tables[0]["env_steps"][:n], curves, f"C{labels.index(label)}",
                                f"{label} {controller}", line)
         ax.set_title(panel)
-        ax.set_xlabel("episode")
+        ax.set_xlabel("env steps")
         ax.grid(alpha=0.3)
     axes[0].set_yscale("log")
     axes[0].legend(loc="best", fontsize=8)

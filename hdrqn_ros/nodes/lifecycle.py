@@ -42,6 +42,7 @@ class ManagedNode(LifecycleNode):
         self.parameter_table = parameters
         self.configured = self.active = self.finished = False
         self.exit_code = 0
+        self.configure_error = ""  # why the last configure failed
         self.params: dict[str, Any] = declare_parameters(self, parameters, apply=self._live_parameter,
                                                          configurable=lambda: not self.configured)
         self._made_before: dict[str, set] = {}
@@ -66,10 +67,12 @@ class ManagedNode(LifecycleNode):
     # -- the state machine ---------------------------------------------------------------------
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         self.params = {name: self.get_parameter(name).value for name in self.parameter_table}
+        self.configure_error = ""
         self._made_before = self._entities()
         try:
             self.build()
         except self.bad_input as exc:
+            self.configure_error = str(exc)
             self.get_logger().error(f"configure failed, the node stays unconfigured: {exc}")
             self._destroy_made()
             return TransitionCallbackReturn.FAILURE

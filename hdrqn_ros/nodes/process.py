@@ -109,7 +109,7 @@ def run_node(make: Callable[..., Node], argv: list[str] | None = None,
         node = make(context=context)
         if managed and not isinstance(node, LifecycleNode):
             raise NodeConfigError(f"{node.get_name()} has no managed (lifecycle) mode: drop {MANAGED_FLAG}")
-        node.get_logger().info(f"rclpy on {network}, domain {context.get_domain_id()}")
+        node.get_logger().info(f"middleware rclpy {rclpy_version()}: {network}, domain {context.get_domain_id()}")
         executor = make_executor(context)
         executor.add_node(node)
         if isinstance(node, LifecycleNode) and not managed:
@@ -137,12 +137,25 @@ def run_node(make: Callable[..., Node], argv: list[str] | None = None,
 
 
 def _bring_up(node: LifecycleNode) -> None:
-    """Configure and activate an unmanaged lifecycle node; a refused transition is bad input
-    (the node logged why)."""
+    """Configure and activate an unmanaged lifecycle node; a refused transition is bad input,
+    named by the node's ``configure_error`` where it has one."""
     for transition in (node.trigger_configure, node.trigger_activate):
         if transition() != TransitionCallbackReturn.SUCCESS:
+            why = getattr(node, "configure_error", "") or "the log says why"
             raise NodeConfigError(f"{node.get_fully_qualified_name()}: {transition.__name__.removeprefix('trigger_')} "
-                                  f"failed (the log says why)")
+                                  f"failed: {why}")
+
+
+def rclpy_version() -> str:
+    """The installed rclpy's version ("7.1.6" for the Jazzy wheels), or "" when unknown."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    for dist in ("ros-rclpy", "rclpy"):
+        try:
+            return version(dist)
+        except PackageNotFoundError:
+            continue
+    return ""
 
 
 def _spin(executor, context: Context, until: Callable[[], bool]) -> None:

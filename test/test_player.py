@@ -251,29 +251,40 @@ def test_bad_input_exits_2_naming_the_problem(domain, bags, tmp_path, capsys):
         assert str(path) in err and "Traceback" not in err, err
 
 
-def test_parameters_given_in_python_win_over_ros_args(domain, backend, bags):
+def test_parameters_given_in_python_win_over_ros_args(domain, bags):
     """``hdrqn bag play`` hands the in-process player its settings as values: they are
     type-checked like ``--ros-args -p`` ones (an int for a double is a double), win over
     them, and leave the others to ``--ros-args``; an unknown name or a wrong type is refused."""
-    from hdrqn_ros.middleware import ParameterError, open_middleware
-    from hdrqn_ros.nodes.player import PlayerNode
+    import rclpy
+    from rclpy.context import Context
 
-    mw = open_middleware(["player", "--ros-args", "-p", "rate:=3.0", "-p", "loop:=true", "-p", "delay:=0.5"],
-                         backend)
+    from hdrqn_ros.middleware.network import apply_rmw_network_defaults
+    from hdrqn_ros.nodes.parameters import NodeConfigError
+    from hdrqn_ros.nodes.player import PlayerNode, parameter_overrides
+
+    apply_rmw_network_defaults(None)  # loopback only, as a node process
+    context = Context()
+    rclpy.init(args=["player", "--ros-args", "-p", "rate:=3.0", "-p", "loop:=true", "-p", "delay:=0.5"],
+               context=context)
     players = []
+
+    def player(**values) -> PlayerNode:
+        players.append(p := PlayerNode(context=context, parameter_overrides=parameter_overrides(values)))
+        return p
+
     try:
         main = str(bags / "main")
-        players.append(p := PlayerNode(mw, parameters={"bag": [main], "rate": 2, "topics": ["/chatter"],
-                                                       "clock": False, "delay": 60.0}))
+        p = player(bag=[main], rate=2, topics=["/chatter"], clock=False, delay=60.0)
         assert (p.bags, p.rate, p.loop, p.delay) == ([main], 2.0, True, 60.0) and type(p.rate) is float
         assert list(p.topics) == ["/chatter"] and not p.generate_clock
-        players.append(p := PlayerNode(mw, parameters={"bag": [main], "topics": [], "delay": 60.0}))
+        p = player(bag=[main], topics=[], delay=60.0)
         assert p.rate == 3.0 and set(p.topics) == set(TOPICS) and p.generate_clock  # []: every topic
-        with pytest.raises(ParameterError, match="rate"):
-            PlayerNode(mw, parameters={"bag": [main], "rate": "fast"})
-        with pytest.raises(ParameterError, match="speed"):
-            PlayerNode(mw, parameters={"bag": [main], "speed": 2.0})
+        with pytest.raises(NodeConfigError, match="rate"):
+            parameter_overrides({"bag": [main], "rate": "fast"})
+        with pytest.raises(NodeConfigError, match="speed"):
+            parameter_overrides({"bag": [main], "speed": 2.0})
     finally:
         for p in players:
             p.close()
-        mw.shutdown()
+            p.destroy_node()
+        rclpy.try_shutdown(context=context)

@@ -44,8 +44,6 @@ def _bag_play(args) -> int:
 
     from hdrqn_ros.middleware import BACKEND_ENV, BackendError, chosen_backend
     from hdrqn_ros.middleware.ros_args import INTERFACE_ENV
-    from hdrqn_ros.nodes.common import run_node
-    from hdrqn_ros.nodes.player import PlayerNode
 
     if not (math.isfinite(args.rate) and args.rate > 0):
         raise UsageError(f"--rate must be > 0, got {args.rate}")
@@ -77,7 +75,11 @@ def _bag_play(args) -> int:
               f"{(player.bag_time_ns - player.start_ns) / 1e9:.2f}/{(player.end_ns - player.start_ns) / 1e9:.2f} s",
               file=sys.stderr, flush=True)
 
-    return run_node(lambda mw: PlayerNode(mw, progress=progress, parameters=parameters), ["hdrqn bag play"])
+    from hdrqn_ros.nodes.player import PlayerNode, parameter_overrides  # both import rclpy: after require_rclpy()
+    from hdrqn_ros.nodes.process import run_node
+
+    return run_node(lambda **kw: PlayerNode(progress=progress, parameter_overrides=parameter_overrides(parameters),
+                                            **kw), ["hdrqn bag play"])
 
 
 def cmd_bag(args) -> int:

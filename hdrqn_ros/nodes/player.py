@@ -8,10 +8,10 @@ by ``rate``. With ``clock`` the node publishes ``/clock`` (``rosgraph_msgs/msg/C
 bag time, at most ``clock_hz`` times a wall-clock second and never ahead of the next
 message; a bag that recorded its own ``/clock`` has that played instead.
 
-Reading and publishing run on a background thread; the middleware spins on the main
-thread. The node sets ``finished`` when the bags have been played (``loop``: never, until
-stopped), so :func:`~hdrqn_ros.nodes.common.run_node` exits with ``exit_code`` 0, or 2
-for a bag that cannot be read.
+Reading and publishing run on a background thread; the executor spins on the main thread.
+The node sets ``finished`` when the bags have been played (``loop``: never, until stopped),
+so :func:`~hdrqn_ros.nodes.process.run_node` exits with ``exit_code`` 0, or 2 for a bag
+that cannot be read.
 """
 from __future__ import annotations
 
@@ -20,39 +20,66 @@ import math
 import sys
 import threading
 import time
+import traceback
 from typing import Any, Callable, Iterator
 
-from hdrqn_ros.middleware import DEFAULT_QOS, Middleware, ParameterRule, QoS
-from hdrqn_ros.nodes.common import NodeConfigError, run_node
+from builtin_interfaces.msg import Time
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock as ClockMsg
+
+from hdrqn_ros.nodes.parameters import NodeConfigError, Param, declare_parameters
+from hdrqn_ros.nodes.process import run_node
+from hdrqn_ros.nodes.qos import DEFAULT_QOS, keep_last
+from hdrqn_ros.nodes.ros_messages import MissingRosPackage, from_cdr, interface_class
 from hdrqn_ros.recording.bag import BagError, TopicInfo, bag_summary, bag_topics, read_messages
 
-PARAMETERS = {"bag": [""], "rate": 1.0, "loop": False, "topics": [""], "clock": True, "clock_hz": 100.0,
-              "delay": 1.0, "wait_for_subscribers": 0}
-"""``bag``: bag directories, played together in timestamp order (empty items are ignored);
-``rate``: bag seconds per wall-clock second (> 0); ``loop``: start over at the end, until
-stopped; ``topics``: recorded topic names to play (``[""]``: all); ``clock``: publish
-``/clock`` in bag time; ``clock_hz``: at most this many generated ``/clock`` messages per
-wall-clock second; ``delay``: seconds to wait after creating the publishers, so that DDS
-discovery matches the subscribers before the first message; ``wait_for_subscribers``: first
-wait (without limit, until stopped) until every topic's publisher has at least this many
-matched subscriptions (0: do not wait), for a consumer that must get every message."""
 
-RULES = {
-    "bag": ParameterRule("bag directories, played together in timestamp order"),
-    "rate": ParameterRule("bag seconds per wall-clock second", positive=True),
-    "loop": ParameterRule("start over at the end, until stopped"),
-    "topics": ParameterRule("recorded topic names to play ([''] : all)"),
-    "clock": ParameterRule("publish /clock in bag time"),
-    "clock_hz": ParameterRule("at most this many generated /clock messages per wall-clock second", positive=True),
-    "delay": ParameterRule("seconds to wait for discovery before the first message", low=0.0, high=3600.0),
-    "wait_for_subscribers": ParameterRule("first wait until every topic has this many subscribers (0: do not wait)",
-                                          low=0, high=1000),
+PARAMETERS = {
+    "bag": Param([""], "bag directories, played together in timestamp order (empty items are ignored)",
+                 check=lambda bags: None if any(bags) else "no bag to play: give a list of bag directories"),
+    "rate": Param(1.0, "bag seconds per wall-clock second", positive=True),
+    "loop": Param(False, "start over at the end, until stopped"),
+    "topics": Param([""], "recorded topic names to play ([''] : all)"),
+    "clock": Param(True, "publish /clock in bag time"),
+    "clock_hz": Param(100.0, "at most this many generated /clock messages per wall-clock second", positive=True),
+    "delay": Param(1.0, "seconds to wait for discovery before the first message", low=0.0, high=3600.0),
+    "wait_for_subscribers": Param(0, "first wait until every topic has this many subscribers (0: do not wait)",
+                                  low=0, high=1000),
 }
-"""Descriptions of :data:`PARAMETERS`: all read-only (set when the playback starts)."""
+"""All read-only (set when the playback starts). ``delay``: seconds to wait after creating
+the publishers, so that DDS discovery matches the subscribers before the first message;
+``wait_for_subscribers``: first wait (without limit, until stopped) until every topic's
+publisher has at least this many matched subscriptions, for a consumer that must get every
+message."""
 
 CLOCK_TOPIC = "/clock"
 CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
-TIME_TYPE = "builtin_interfaces/msg/Time"
+
+
+def parameter_overrides(values: dict[str, Any]) -> list[Parameter]:
+    """Values of :data:`PARAMETERS` given in Python (``hdrqn bag play``) as the node's
+    ``parameter_overrides``, which win over ``--ros-args``: typed as declared (an int for a
+    double is a double, ``[]`` is ``[""]``: rclpy takes an empty list for bytes, and the
+    lists' empty names are ignored); :class:`NodeConfigError` for an unknown name or a value
+    of another type."""
+    overrides = []
+    for name, value in values.items():
+        if name not in PARAMETERS:
+            raise NodeConfigError(f"node player has no parameter {name!r} (it declares {sorted(PARAMETERS)})")
+        default = PARAMETERS[name].default
+        if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        elif isinstance(default, list) and isinstance(value, (list, tuple)) and not value:
+            value = [""]
+        try:
+            overrides.append(Parameter(name, Parameter.Type.from_parameter_value(default), value))
+        except ValueError:  # rclpy: the type and the value do not agree
+            raise NodeConfigError(f"node player: parameter {name!r} must be {type(default).__name__} "
+                                  f"(default {default!r}), got {value!r}") from None
+    return overrides
 
 
 def _merge(a: TopicInfo | None, b: TopicInfo) -> TopicInfo:
@@ -74,35 +101,23 @@ def on_wire(cdr: bytes) -> bytes:
     return bytes(cdr) + b"\0" * (-len(cdr) % 4)
 
 
-def playback_qos(info: TopicInfo) -> QoS:
-    """The QoS to publish a recorded topic with (:data:`DEFAULT_QOS` for what is unknown)."""
-    return QoS(depth=info.depth or DEFAULT_QOS.depth,
-               reliable=DEFAULT_QOS.reliable if info.reliable is None else info.reliable,
-               transient_local=DEFAULT_QOS.transient_local if info.transient_local is None else info.transient_local)
+def playback_qos(info: TopicInfo) -> QoSProfile:
+    """The QoS to publish a recorded topic with (:data:`DEFAULT_QOS` for what the bag did not record)."""
+    reliable = DEFAULT_QOS.reliability == ReliabilityPolicy.RELIABLE if info.reliable is None else info.reliable
+    return keep_last(info.depth or DEFAULT_QOS.depth, reliable=reliable, transient_local=bool(info.transient_local))
 
 
-class PlayerNode:
-    """Plays ``bag`` onto the graph. ``parameters`` (optional): values of :data:`PARAMETERS`
-    given in Python by code that runs the player in its own process (``hdrqn bag play``);
-    they win over ``--ros-args``. ``progress(player)`` (optional) is called every
-    ``progress_period`` seconds on the spinning thread (the CLI's progress line)."""
+class PlayerNode(Node):
+    """Plays ``bag`` onto the graph. ``progress(player)`` (optional) is called every
+    ``progress_period`` seconds (wall time) on the spinning thread (the CLI's progress line);
+    ``kwargs`` go to :class:`rclpy.node.Node` (``context``, ``parameter_overrides``)."""
 
-    def __init__(self, mw: Middleware, progress: Callable[["PlayerNode"], None] | None = None,
-                 progress_period: float = 2.0, parameters: dict[str, Any] | None = None):
-        node = self.node = mw.create_node("player")
-        params = self.params = node.declare_parameters(PARAMETERS, parameters, rules=RULES)
+    def __init__(self, progress: Callable[["PlayerNode"], None] | None = None, progress_period: float = 2.0,
+                 **kwargs):
+        super().__init__("player", **kwargs)
+        params = self.params = declare_parameters(self, PARAMETERS)
         self.bags = [b for b in params["bag"] if b]
-        if not self.bags:
-            raise NodeConfigError("no bag to play: set the parameter bag to a list of bag directories")
         self.rate, self.loop, self.delay = params["rate"], params["loop"], params["delay"]
-        if not (math.isfinite(self.rate) and self.rate > 0):
-            raise NodeConfigError(f"rate must be a number > 0, got {self.rate}")
-        if not (math.isfinite(self.delay) and self.delay >= 0):
-            raise NodeConfigError(f"delay must be >= 0 s, got {self.delay}")
-        if params["wait_for_subscribers"] < 0:
-            raise NodeConfigError(f"wait_for_subscribers must be >= 0, got {params['wait_for_subscribers']}")
-        if params["clock"] and not (math.isfinite(params["clock_hz"]) and params["clock_hz"] > 0):
-            raise NodeConfigError(f"clock_hz must be > 0, got {params['clock_hz']}")
 
         infos: dict[str, TopicInfo] = {}
         first_bag: dict[str, str] = {}
@@ -136,14 +151,14 @@ class PlayerNode:
         self.clock_period = 1.0 / params["clock_hz"] if self.generate_clock else math.inf
 
         self.topics = {t: infos[t] for t in sorted(selected)}
-        self.publishers: dict[str, Any] = {}
+        self.topic_publishers: dict[str, Any] = {}  # recorded topic -> its publisher
         for topic, info in self.topics.items():
             try:
-                node.msg(info.type_name)
-            except ValueError as exc:
+                msg_type = interface_class(info.type_name)
+            except (ValueError, MissingRosPackage) as exc:
                 raise BagError(f"{first_bag[topic]}: topic {topic}: {exc}") from None
-            self.publishers[topic] = node.create_publisher(info.type_name, topic, playback_qos(info))
-        self.clock_pub = node.create_publisher(CLOCK_TYPE, CLOCK_TOPIC, DEFAULT_QOS) if self.generate_clock else None
+            self.topic_publishers[topic] = self.create_publisher(msg_type, topic, playback_qos(info))
+        self.clock_pub = self.create_publisher(ClockMsg, CLOCK_TOPIC, DEFAULT_QOS) if self.generate_clock else None
 
         self.total = sum(info.message_count for info in self.topics.values())  # per pass
         self.published = 0  # messages published, all passes
@@ -152,11 +167,11 @@ class PlayerNode:
         self.finished = False
         self.exit_code = 0
         self._stop = threading.Event()
-        node.logger.info("playing %d messages on %d topics from %s at rate %g%s%s", self.total, len(self.topics),
-                         ", ".join(self.bags), self.rate, ", looping" if self.loop else "",
-                         ", publishing /clock" if self.generate_clock else "")
+        self.get_logger().info(f"playing {self.total} messages on {len(self.topics)} topics from "
+                               f"{', '.join(self.bags)} at rate {self.rate:g}{', looping' if self.loop else ''}"
+                               f"{', publishing /clock' if self.generate_clock else ''}")
         if progress is not None:
-            node.create_timer(progress_period, lambda: progress(self))
+            self.create_timer(progress_period, lambda: progress(self), clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._thread = threading.Thread(target=self._run, name="player", daemon=True)
         self._thread.start()
 
@@ -164,14 +179,14 @@ class PlayerNode:
     def _wait_for_subscribers(self) -> bool:
         """Wait until each publisher has ``wait_for_subscribers`` matched subscriptions; False if stopped."""
         wanted = self.params["wait_for_subscribers"]
-        publishers = {**self.publishers, **({CLOCK_TOPIC: self.clock_pub} if self.clock_pub is not None else {})}
+        publishers = {**self.topic_publishers, **({CLOCK_TOPIC: self.clock_pub} if self.clock_pub is not None else {})}
         next_report = time.monotonic() + 5.0
         while wanted > 0 and not self._stop.is_set():
             missing = sorted(t for t, pub in publishers.items() if pub.get_subscription_count() < wanted)
             if not missing:
                 return True
             if time.monotonic() >= next_report:
-                self.node.logger.info("waiting for %d subscriber(s) on %s", wanted, ", ".join(missing))
+                self.get_logger().info(f"waiting for {wanted} subscriber(s) on {', '.join(missing)}")
                 next_report += 5.0
             self._stop.wait(0.05)
         return not self._stop.is_set()
@@ -184,7 +199,7 @@ class PlayerNode:
         return heapq.merge(*streams, key=lambda m: (m[0], m[1]))
 
     def _run(self) -> None:
-        log = self.node.logger
+        log = self.get_logger()
         try:
             if not self._wait_for_subscribers():
                 return
@@ -194,17 +209,17 @@ class PlayerNode:
             while not self._stop.is_set():
                 self.passes += 1
                 if self.loop:
-                    log.info("playing pass %d", self.passes)
+                    log.info(f"playing pass {self.passes}")
                 if not self._play_once() or not self.loop:
                     break
-            log.info("played %d messages on %d topics in %d pass(es) over %.1f s (rate %g)%s", self.published,
-                     len(self.topics), self.passes, time.monotonic() - wall0 - self.delay, self.rate,
-                     ", stopped early" if self._stop.is_set() else "")
+            log.info(f"played {self.published} messages on {len(self.topics)} topics in {self.passes} pass(es) over "
+                     f"{time.monotonic() - wall0 - self.delay:.1f} s (rate {self.rate:g})"
+                     f"{', stopped early' if self._stop.is_set() else ''}")
         except BagError as exc:
-            log.error("error: %s", exc)
+            log.error(f"error: {exc}")
             self.exit_code = 2
         except Exception:  # a bug: say so, with the traceback, and exit non-zero
-            log.exception("playing the bags failed")
+            log.error(f"playing the bags failed:\n{traceback.format_exc()}")
             self.exit_code = 1
         finally:
             self.finished = True
@@ -218,13 +233,13 @@ class PlayerNode:
             if start_wall is None:
                 start_ns, start_wall = t, time.monotonic()
             try:
-                self.node.from_cdr(type_name, data)  # it must decode; the recorded bytes go out as they are
+                from_cdr(type_name, data)  # it must decode; the recorded bytes go out as they are
             except Exception as exc:
                 raise BagError(f"{bag}: the message on {topic} at {t} ns does not decode as {type_name} "
                                f"({type(exc).__name__}: {exc})") from None
             if not self._wait_until(t, start_ns, start_wall):
                 return 0
-            self.publishers[topic].publish(on_wire(data))
+            self.topic_publishers[topic].publish(on_wire(data))
             self.published += 1
             self.bag_time_ns = t
             count += 1
@@ -246,8 +261,7 @@ class PlayerNode:
                 return False
 
     def _publish_clock(self, t_ns: int) -> None:
-        stamp = self.node.msg(TIME_TYPE)(sec=t_ns // 10**9, nanosec=t_ns % 10**9)
-        self.clock_pub.publish(self.node.msg(CLOCK_TYPE)(clock=stamp))
+        self.clock_pub.publish(ClockMsg(clock=Time(sec=t_ns // 10**9, nanosec=t_ns % 10**9)))
 
     def close(self) -> None:
         """Stop playing (Ctrl-C, SIGTERM) and wait for the playing thread."""
@@ -256,7 +270,7 @@ class PlayerNode:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_node(lambda mw: PlayerNode(mw), argv, (BagError,))
+    return run_node(PlayerNode, argv, (BagError,))
 
 
 if __name__ == "__main__":

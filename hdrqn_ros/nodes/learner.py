@@ -1,7 +1,7 @@
 """``learner`` node: assembles transitions from the graph, owns replay, trains, publishes weights.
 
 For each environment group (a namespace in ``groups``) a
-:class:`~hdrqn_ros.protocol.group.GroupAssembler` joins the group's messages by step key
+:class:`~hdrqn_ros.nodes.learner_groups.GroupAssembler` joins the group's messages by step key
 into the same :class:`StepRecord` rows the in-process rollout produces, and the same
 :class:`EpisodeBuilder` turns them into replay episodes (recorded, when ``record``, by
 :class:`~hdrqn_ros.recording.received.GraphRecorder`).
@@ -22,24 +22,50 @@ import time
 from pathlib import Path
 
 import numpy as np
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from std_msgs.msg import String, UInt8MultiArray
 
 from hdrqn_ros.agents.weights import encode_weights
-from hdrqn_ros.config import ConfigError, build_config, parse_set
-from hdrqn_ros.middleware import LATCHED_QOS, Middleware, ParameterRule
+from hdrqn_ros.config import ConfigError, TrainConfig, build_config, parse_set
+from hdrqn_ros.nodes.graph_parameters import ENV_PARAMETERS, MAX_MESSAGE_BYTES, env_kwargs
+from hdrqn_ros.nodes.learner_groups import GroupAssembler
+from hdrqn_ros.nodes.node_logger import python_logger
+from hdrqn_ros.nodes.parameters import NodeConfigError, Param, declare_parameters
+from hdrqn_ros.nodes.process import run_node
+from hdrqn_ros.nodes.qos import LATCHED_QOS
+from hdrqn_ros.nodes.ros_messages import ROS_MESSAGES, to_cdr
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.follower import LOST_AFTER_S
-from hdrqn_ros.protocol.group import GroupAssembler
 from hdrqn_ros.recording.bag import BagError
 from hdrqn_ros.recording.received import GraphRecorder, earlier_recordings
 from hdrqn_ros.recording.transitions import read_episodes
-from hdrqn_ros.nodes.common import ENV_DEFAULTS, ENV_RULES, NodeConfigError, check_algo, env_kwargs, run_node
 from hdrqn_ros.training.checkpoint import CheckpointError
 from hdrqn_ros.training.learner import Learner
 
-PARAMETERS = {**ENV_DEFAULTS, "config": "", "overrides": [""], "episodes": 1000, "run_dir": "runs/graph",
-              "groups": ["/"], "resume": False, "weights_every": 100, "credit_window": 20, "max_owed_updates": 8,
-              "status_period": 1.0, "evaluate": True, "transition_log": "", "record": "", "record_split_mb": 256.0,
-              "bags": [""], "offline_updates": 0, "lost_after_s": LOST_AFTER_S}
+MAX_COUNT = 10**9
+"""The largest count a parameter takes (episodes, updates, steps)."""
+PARAMETERS = {
+    **ENV_PARAMETERS, **MAX_MESSAGE_BYTES,
+    "config": Param("", "training config YAML (hdrqn train --config)"),
+    "overrides": Param([""], "key=value config items, like hdrqn train --set"),
+    "episodes": Param(1000, "training episodes, all groups together", low=1, high=MAX_COUNT),
+    "run_dir": Param("runs/graph", "run directory: checkpoints, metrics, logs"),
+    "groups": Param(["/"], "the groups' namespaces ([''] : offline only)"),
+    "resume": Param(False, "continue from run_dir's checkpoint when there is one"),
+    "weights_every": Param(100, "updates between weight publications", low=1, high=MAX_COUNT),
+    "credit_window": Param(20, "env steps a group may run ahead of the updates owed", low=1, high=MAX_COUNT),
+    "max_owed_updates": Param(8, "updates owed before a group's credit stops", low=1, high=MAX_COUNT),
+    "status_period": Param(1.0, "seconds between status publications", positive=True),
+    "evaluate": Param(True, "greedy evaluations during and after training"),
+    "transition_log": Param("", "append every assembled transition to this JSON-lines file ('': off)"),
+    "record": Param("", "record every message taken from the groups to this new rosbag2 MCAP bag ('': off)"),
+    "record_split_mb": Param(256.0, "split the recording every this many MB", positive=True),
+    "bags": Param([""], "fill the replay from these bags before training"),
+    "offline_updates": Param(0, "updates on the bags before taking the graph's data", low=0, high=MAX_COUNT),
+    "lost_after_s": Param(LOST_AFTER_S, "seconds a later step is complete before a step missing messages is "
+                                        "given up", positive=True),
+}
 """``config``: a training config YAML (``hdrqn train --config``); ``overrides``:
 ``key=value`` items like ``hdrqn train --set``; the parameters ``algo``, ``env``, ``view``,
 ``seed``, ``episodes`` win over both. ``resume``: continue from ``run_dir``'s checkpoint
@@ -58,86 +84,59 @@ With no groups (``groups: [""]``) the learner trains offline only: ``offline_upd
 (default 10 per ``update_every`` recorded steps), then evaluates and finishes.
 ``lost_after_s``: a step whose messages have not all come is given up as lost once a later
 step of its environment has been complete this long (DDS repairs a reliable sample within a
-few heartbeats; raise it where links or machines are slow)."""
-RULES = {
-    **ENV_RULES,
-    "config": ParameterRule("training config YAML (hdrqn train --config)"),
-    "overrides": ParameterRule("key=value config items, like hdrqn train --set"),
-    "episodes": ParameterRule("training episodes, all groups together", low=1, high=10**9),
-    "run_dir": ParameterRule("run directory: checkpoints, metrics, logs"),
-    "groups": ParameterRule("the groups' namespaces ([''] : offline only)"),
-    "resume": ParameterRule("continue from run_dir's checkpoint when there is one"),
-    "weights_every": ParameterRule("updates between weight publications", low=1, high=10**9),
-    "credit_window": ParameterRule("env steps a group may run ahead of the updates owed", low=1, high=10**9),
-    "max_owed_updates": ParameterRule("updates owed before a group's credit stops", low=1, high=10**9),
-    "status_period": ParameterRule("seconds between status publications", positive=True),
-    "evaluate": ParameterRule("greedy evaluations during and after training"),
-    "transition_log": ParameterRule("append every assembled transition to this JSON-lines file ('': off)"),
-    "record": ParameterRule("record every message taken from the groups to this new rosbag2 MCAP bag ('': off)"),
-    "record_split_mb": ParameterRule("split the recording every this many MB", positive=True),
-    "bags": ParameterRule("fill the replay from these bags before training"),
-    "offline_updates": ParameterRule("updates on the bags before taking the graph's data", low=0, high=10**9),
-    "lost_after_s": ParameterRule("seconds a later step is complete before a step missing messages is given up",
-                                  positive=True),
-}
-"""Descriptions of :data:`PARAMETERS`: all read-only (a learner's settings are its run's)."""
+few heartbeats; raise it where links or machines are slow). All read-only: a learner's
+settings are its run's."""
 
 EPISODE_QUEUE = 256
 """Finished episodes waiting for the training thread (bounded; the credit keeps it short)."""
 
 
-class LearnerNode:
-    def __init__(self, mw: Middleware):
-        node = self.node = mw.create_node("learner")
-        params = self.params = node.declare_parameters(PARAMETERS, rules=RULES)
-        check_algo(params["algo"])
-        overrides = parse_set([item for item in params["overrides"] if item])
-        overrides.setdefault("env_kwargs", {}).update(env_kwargs(params["env"], params["view"]))
-        cfg = build_config([params["config"]] if params["config"] else [],
-                           **{**overrides, "algo": params["algo"], "env": params["env"], "seed": params["seed"],
-                              "episodes": params["episodes"]})
+def train_config(params: dict) -> TrainConfig:
+    """The run's config: the ``config`` file, then ``overrides``, then the parameters ``algo``,
+    ``env``, ``view``, ``seed`` and ``episodes``."""
+    overrides = parse_set([item for item in params["overrides"] if item])
+    overrides.setdefault("env_kwargs", {}).update(env_kwargs(params["env"], params["view"]))
+    return build_config([params["config"]] if params["config"] else [],
+                        **{**overrides, "algo": params["algo"], "env": params["env"], "seed": params["seed"],
+                           "episodes": params["episodes"]})
+
+
+class LearnerNode(Node):
+    """The learner: one :class:`GroupAssembler` per group, the replay and a training thread."""
+
+    def __init__(self, **kwargs):
+        super().__init__("learner", **kwargs)
+        params = self.params = declare_parameters(self, PARAMETERS)
+        self.logger = python_logger(self)  # %-style, for the protocol and recording layers
+        bags, namespaces = [b for b in params["bags"] if b], [ns for ns in params["groups"] if ns]
+        if not bags and not namespaces:
+            raise NodeConfigError("nothing to learn from: give environment groups (groups) or bags (bags)")
+        cfg = train_config(params)
         run_dir = Path(params["run_dir"])
         resume = params["resume"] and (run_dir / "checkpoints" / "last.pt").exists()
         self.learner = Learner(cfg, run_dir, resume=resume, progress=False)
         if resume:
-            node.logger.info("resumed from %s at episode %d", run_dir, self.learner.episodes)
-        for key in ("weights_every", "credit_window", "max_owed_updates"):
-            if params[key] < 1:
-                raise NodeConfigError(f"{key} must be >= 1, got {params[key]}")
+            self.get_logger().info(f"resumed from {run_dir} at episode {self.learner.episodes}")
         self.episodes: queue.Queue = queue.Queue(EPISODE_QUEUE)
         self.transition_log = open(params["transition_log"], "a", buffering=1) if params["transition_log"] else None
-        if params["offline_updates"] < 0:
-            raise NodeConfigError(f"offline_updates must be >= 0, got {params['offline_updates']}")
-        bags, namespaces = [b for b in params["bags"] if b], [ns for ns in params["groups"] if ns]
-        if not bags and not namespaces:
-            raise NodeConfigError("nothing to learn from: give environment groups (groups) or bags (bags)")
-        if params["record"] and params["record_split_mb"] <= 0:
-            raise NodeConfigError(f"record_split_mb must be > 0, got {params['record_split_mb']}")
         self.prefilled = self._fill(bags)
         if bags:
-            node.logger.info("replay filled from %d bag(s): %d episodes, %d steps", len(bags), *self.prefilled)
+            self.get_logger().info(f"replay filled from {len(bags)} bag(s): {self.prefilled[0]} episodes, "
+                                   f"{self.prefilled[1]} steps")
             if not self.prefilled[0]:
                 raise NodeConfigError(f"no complete episode for {cfg.algo} in {bags}")
-        recorded = earlier_recordings(params["record"], node.logger) if resume and params["record"] else []
-        if recorded and self.learner.replay_restored:
-            # The recordings hold every acknowledged episode, those after the checkpoint too:
-            # refill from them alone rather than on top of the checkpoint's replay snapshot.
-            for replay in self.learner.replays().values():
-                replay.clear()
-        self.recovered = self._fill(recorded)
-        if recorded:
-            node.logger.info("recovered %d acknowledged episodes (%d transitions) from %s", *self.recovered,
-                             ", ".join(recorded))
+        self.recovered = self._recover(params["record"]) if resume and params["record"] else (0, 0)
         self.offline_updates = params["offline_updates"]
         if not namespaces and not self.offline_updates:
             self.offline_updates = max(1, 10 * self.prefilled[1] // cfg.update_every)
-        self.recorder = (GraphRecorder(node, params["record"], cfg, params["record_split_mb"])
+        self.recorder = (GraphRecorder(params["record"], cfg, params["record_split_mb"], to_cdr, self.logger)
                          if params["record"] else None)
-        self.groups = [GroupAssembler(node, ns, self.learner, self.episodes, self.transition_log, self.recorder,
-                                      params["lost_after_s"]) for ns in namespaces]
-        self.weight_pubs = {c.name: node.create_publisher(wire.BYTES, wire.WEIGHTS[c.name], LATCHED_QOS)
+        self.groups = [GroupAssembler(self, ns, self.learner, self.episodes, self.logger, params["max_message_bytes"],
+                                      params["lost_after_s"], self.transition_log, self.recorder)
+                       for ns in namespaces]
+        self.weight_pubs = {c.name: self.create_publisher(UInt8MultiArray, wire.WEIGHTS[c.name], LATCHED_QOS)
                             for c in self.learner.agent.controllers}
-        self.status_pub = node.create_publisher(wire.STRING, wire.STATUS, LATCHED_QOS)
+        self.status_pub = self.create_publisher(String, wire.STATUS, LATCHED_QOS)
         self.epoch = time.time()
         self.learner.begin()
         self.finished = False
@@ -146,20 +145,38 @@ class LearnerNode:
         self._credit_lock = threading.Lock()
         self._stop = threading.Event()
         self._publish_weights()
-        node.create_timer(params["status_period"], self._status)
-        node.create_timer(1.0, lambda: self._grant_credit(force=True))  # also reaches late joiners
+        steady = Clock(clock_type=ClockType.STEADY_TIME)  # credit must flow while simulated time stands still
+        self.create_timer(params["status_period"], self._status, clock=steady)
+        self.create_timer(1.0, lambda: self._grant_credit(force=True), clock=steady)  # also reaches late joiners
         self.thread = threading.Thread(target=self._train, name="learner-train", daemon=True)
         self.thread.start()
+
+    def _recover(self, record: str) -> tuple[int, int]:
+        """Refill the replay from the bags the learner's earlier lives recorded to ``record``;
+        returns (episodes, steps)."""
+        recorded = earlier_recordings(record, self.logger)
+        if recorded and self.learner.replay_restored:
+            # The recordings hold every acknowledged episode, those after the checkpoint too:
+            # refill from them alone rather than on top of the checkpoint's replay snapshot.
+            for replay in self.learner.replays().values():
+                replay.clear()
+        recovered = self._fill(recorded)
+        if recorded:
+            self.get_logger().info(f"recovered {recovered[0]} acknowledged episodes ({recovered[1]} transitions) "
+                                   f"from {', '.join(recorded)}")
+        return recovered
 
     def _fill(self, bags: list[str]) -> tuple[int, int]:
         """Fill the replay from ``bags`` (not counted as this run's episodes); returns (episodes, steps)."""
         if not bags:
             return 0, 0
-        items = read_episodes(bags, self.learner.cfg, self.learner.agent.num_subgoals, logger=self.node.logger)
+        items = read_episodes(bags, self.learner.cfg, self.learner.agent.num_subgoals, logger=self.logger)
         return self.learner.store(items, counted=False)
 
     # -- the training thread ---------------------------------------------------------------------
     def _train(self) -> None:
+        """The offline updates, then: count the groups' transitions, store finished episodes, run
+        the updates owed, publish weights and credit, until ``episodes``; then :meth:`_finish`."""
         learner, cfg = self.learner, self.learner.cfg
         counted = {id(g): g.transitions for g in self.groups}
         try:
@@ -190,7 +207,7 @@ class LearnerNode:
             if learner.episodes >= cfg.episodes:
                 self._finish()
         except Exception as exc:  # TrainingDiverged and friends: keep the last good checkpoint
-            self.node.logger.error("training stopped: %s: %s", type(exc).__name__, exc)
+            self.get_logger().error(f"training stopped: {type(exc).__name__}: {exc}")
             self.exit_code = 1
         finally:
             self.finished = True
@@ -216,7 +233,7 @@ class LearnerNode:
     def _publish_weights(self) -> None:
         updates = self.learner.agent.sub.updates
         for c in self.learner.agent.controllers:
-            self.weight_pubs[c.name].publish(wire.make_weights(self.node, encode_weights(c.online), updates))
+            self.weight_pubs[c.name].publish(wire.make_weights(ROS_MESSAGES, encode_weights(c.online), updates))
 
     def _finish(self) -> None:
         learner, cfg = self.learner, self.learner.cfg
@@ -227,10 +244,11 @@ class LearnerNode:
                                        prefilled={"episodes": self.prefilled[0], "steps": self.prefilled[1]},
                                        recovered={"episodes": self.recovered[0], "steps": self.recovered[1]})
         self._status()
-        self.node.logger.info("done: %s", json.dumps(self.summary))
+        self.get_logger().info(f"done: {json.dumps(self.summary)}")
 
     # -- status ------------------------------------------------------------------------------------
     def status(self) -> dict:
+        """What ``/learner/status`` and ``run_dir/status.json`` hold."""
         learner = self.learner
         eps, recent = learner.epsilons(), learner.recent
         return {"episodes": learner.episodes, "target_episodes": learner.cfg.episodes,
@@ -242,7 +260,7 @@ class LearnerNode:
 
     def _status(self) -> None:
         text = json.dumps(self.status())
-        self.status_pub.publish(self.node.msg(wire.STRING)(data=text))
+        self.status_pub.publish(String(data=text))
         path = self.learner.run_dir / "status.json"
         tmp = path.with_suffix(".tmp")
         tmp.write_text(text)
@@ -262,8 +280,7 @@ class LearnerNode:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_node(lambda mw: LearnerNode(mw), argv, (ConfigError, BagError, CheckpointError),
-                    large_buffers_to_os=False)
+    return run_node(LearnerNode, argv, (ConfigError, BagError, CheckpointError), large_buffers_to_os=False)
 
 
 if __name__ == "__main__":

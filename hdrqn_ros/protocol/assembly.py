@@ -10,6 +10,7 @@ assembled on their own (:class:`EnvAssembler`), from an episode boundary on.
 from __future__ import annotations
 
 import json
+import logging
 import time
 from typing import Callable
 
@@ -57,20 +58,19 @@ class TransitionAssembler(Decoder):
     height), and each environment's records go to its own :class:`EnvAssembler`."""
 
     def __init__(self, namespace: str, cfg: TrainConfig, num_subgoals: int,
-                 on_episode: Callable[[FinishedEpisode], None], node=None, logger=None, log=None,
+                 on_episode: Callable[[FinishedEpisode], None], logger: logging.Logger, log=None,
                  lost_after_s: float = LOST_AFTER_S):
-        """``lost_after_s``: each environment's :attr:`StepFollower.lost_after_s`."""
-        self.node = node
+        """``logger``: %-style; ``log``: the transition log (a text file) or None;
+        ``lost_after_s``: each environment's :attr:`StepFollower.lost_after_s`. The reader
+        calls :meth:`check_stall` every second."""
         self.lost_after_s = lost_after_s
-        self.logger = logger if logger is not None else node.logger
+        self.logger = logger
         self.ns = namespace.rstrip("/")
         self.cfg, self.num_subgoals, self.on_episode, self.log = cfg, num_subgoals, on_episode, log
         self.spec = ALGO_SPECS[cfg.algo]
         self.num_actions = batch_class(cfg.env).num_actions
         self.envs: list[EnvAssembler] = []  # one per environment, made when the first message says how many
         self.env_steps_seen = 0  # the env node's own step count, from its latest env_step
-        if node is not None:
-            node.create_timer(1.0, self.check_stall)
 
     def topic(self, name: str) -> str:
         return f"{self.ns}/{name}"

@@ -1,24 +1,30 @@
 """One environment group as the learner node reads it: a :class:`TransitionAssembler` fed
-by the node's subscriptions to the group's topics, which also grants the group's credit
-(``learner_credit``) and may record what it receives (through the port's node interface;
-no backend here)."""
+by the learner's subscriptions to the group's topics, which also grants the group's credit
+(``learner_credit``) and may record what it receives."""
 from __future__ import annotations
 
+import logging
 import queue
-from typing import Protocol
+from typing import Callable, Protocol
 
-from hdrqn_ros.middleware.port import LATCHED_QOS
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from std_msgs.msg import Float64MultiArray
+
+from hdrqn_ros.nodes.qos import LATCHED_QOS, STEP_QOS
+from hdrqn_ros.nodes.ros_messages import ROS_MESSAGES, bounded_subscription, interface_class
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.assembly import TransitionAssembler
-from hdrqn_ros.protocol.follower import DEFAULT_CAPACITY, LOST_AFTER_S
+from hdrqn_ros.protocol.follower import DEFAULT_CAPACITY
 from hdrqn_ros.training.episodes import FinishedEpisode
 from hdrqn_ros.training.learner import Learner
-
 
 MAX_LAG = DEFAULT_CAPACITY // 2
 """Steps of the environment node the env may run ahead of what the learner has assembled:
 while DDS repairs a lost sample of one topic the others flow on, and the queue waiting for
 it must not overflow (see :data:`~hdrqn_ros.protocol.follower.LOST_AFTER_S`)."""
+STALL_CHECK_S = 1.0
+"""Wall-clock seconds between :meth:`TransitionAssembler.check_stall` calls."""
 
 
 class Recorder(Protocol):
@@ -26,20 +32,24 @@ class Recorder(Protocol):
 
     def add_group(self, namespace: str, topics: list[str]) -> dict[str, int]: ...
 
-    def recording(self, connection: int, handler): ...
+    def recording(self, connection: int, handler: Callable) -> Callable: ...
 
     def sync(self) -> bool: ...
 
 
 class GroupAssembler(TransitionAssembler):
-    """A :class:`TransitionAssembler` fed by the learner node's subscriptions to one group,
-    which also publishes the group's ``learner_credit`` and may record what it receives.
-    Finished episodes go to ``episodes`` (the training thread stores them in replay)."""
+    """A :class:`TransitionAssembler` fed by ``node``'s subscriptions to one group (samples
+    over ``max_message_bytes`` dropped), which also publishes the group's ``learner_credit``
+    and may record what it receives. Finished episodes go to ``episodes`` (the training
+    thread stores them in replay)."""
 
-    def __init__(self, node, namespace: str, learner: Learner, episodes: queue.Queue, log=None,
-                 recorder: Recorder | None = None, lost_after_s: float = LOST_AFTER_S):
-        super().__init__(namespace, learner.cfg, learner.agent.num_subgoals, self._acknowledge, node=node, log=log,
-                         lost_after_s=lost_after_s)
+    def __init__(self, node: Node, namespace: str, learner: Learner, episodes: queue.Queue,
+                 logger: logging.Logger, max_message_bytes: int, lost_after_s: float, log=None,
+                 recorder: Recorder | None = None):
+        """``logger``: %-style, for the protocol layer; ``log``: the transition log (a text file) or None."""
+        super().__init__(namespace, learner.cfg, learner.agent.num_subgoals, self._acknowledge, logger=logger,
+                         log=log, lost_after_s=lost_after_s)
+        self.ros_node = node
         self.episodes, self.graph_recorder = episodes, recorder
         self.acked_episodes = self.acked_steps = 0
         self.first_step: list[dict] | None = None  # the first step heard from the group (its records)
@@ -50,8 +60,14 @@ class GroupAssembler(TransitionAssembler):
         for name, (type_name, handler) in inputs.items():
             if name in conns:
                 handler = recorder.recording(conns[name], handler)
-            node.create_subscription(type_name, self.topic(name), handler, wire.STEP_QOS)
-        self.credit_pub = node.create_publisher(wire.FLOATS, self.topic(wire.CREDIT), LATCHED_QOS)
+            bounded_subscription(node, interface_class(type_name), self.topic(name), handler, STEP_QOS,
+                                 max_message_bytes, logger)
+        self.credit_pub = node.create_publisher(Float64MultiArray, self.topic(wire.CREDIT), LATCHED_QOS)
+        node.create_timer(STALL_CHECK_S, self.check_stall, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def resolve_topic_name(self, topic: str) -> str:
+        """``topic``'s full name, as the learner node resolves it (for log lines)."""
+        return self.ros_node.resolve_topic_name(topic)
 
     def _acknowledge(self, episode: FinishedEpisode) -> None:
         """A finished episode: make its messages durable in the recording (when recording),
@@ -96,5 +112,5 @@ class GroupAssembler(TransitionAssembler):
         if values == self.last_credit and not force:
             return
         self.last_credit = values
-        self.credit_pub.publish(wire.make_record(self.node, wire.FLOATS, wire.CREDIT_FIELDS,
+        self.credit_pub.publish(wire.make_record(ROS_MESSAGES, wire.FLOATS, wire.CREDIT_FIELDS,
                                                  [*values, self.last_key, epoch]))

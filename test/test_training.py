@@ -109,7 +109,7 @@ def test_each_controllers_losses_are_logged_every_few_updates(tmp_path):
     ``losses/<controller>/<stat>``; the latest TD loss and Q in train.csv's episode rows."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    from hdrqn_ros.training.plots import read_csv, read_losses
+    from hdrqn_ros.training.metrics import read_csv, read_losses
 
     trainer = Trainer(tiny(log_every_updates=4), tmp_path, progress=False, tensorboard=True)
     trainer.run()
@@ -152,7 +152,7 @@ def test_update_means_average_each_controller_over_its_own_updates():
 def test_a_run_begun_before_the_loss_columns_keeps_its_train_csv_header(tmp_path):
     """Resuming a run whose train.csv has no loss columns appends rows under its own header."""
     from hdrqn_ros.training.metrics import TRAIN_COLUMNS, MetricsLog
-    from hdrqn_ros.training.plots import read_csv
+    from hdrqn_ros.training.metrics import read_csv
 
     old = ",".join(TRAIN_COLUMNS)
     (tmp_path / "train.csv").write_text(old + "\n" + ",".join(["1"] * len(TRAIN_COLUMNS)) + "\n")

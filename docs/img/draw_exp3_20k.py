@@ -20,7 +20,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from hdrqn_ros.training.plots import draw_mean_band, read_csv  # noqa: E402
+from hdrqn_ros.training.metrics import read_csv  # noqa: E402
+from hdrqn_ros.training.plots import draw_mean_band  # noqa: E402
 
 DOCS = Path(__file__).resolve().parents[1]
 ORDER = ["hdrqn-v2", "hdrqn-v1", "hdqn", "drqn", "dqn"]

@@ -10,7 +10,7 @@ import numpy as np
 from rclpy.node import Node
 
 from hdrqn_ros.deploy.onnx_policy import OnnxPolicy
-from hdrqn_ros.nodes.acting import ActingNetwork
+from hdrqn_ros.nodes.acting_network import ActingNetwork
 from hdrqn_ros.nodes.graph_parameters import env_kwargs
 from hdrqn_ros.nodes.parameters import NodeConfigError
 from hdrqn_ros.protocol import wire

@@ -10,7 +10,7 @@ from std_msgs.msg import UInt8MultiArray
 
 from hdrqn_ros.agents.algorithms import make_network
 from hdrqn_ros.agents.weights import WeightsError, load_weights
-from hdrqn_ros.nodes.acting import ActingNetwork
+from hdrqn_ros.nodes.acting_network import ActingNetwork
 from hdrqn_ros.nodes.node_logger import python_logger
 from hdrqn_ros.nodes.qos import LATCHED_QOS
 from hdrqn_ros.nodes.ros_messages import bounded_subscription

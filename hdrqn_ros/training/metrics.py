@@ -1,4 +1,4 @@
-"""Run-directory metrics: per-episode CSV, evaluation CSV, the controllers' update
+"""Run-directory metrics, written and read back: per-episode CSV, evaluation CSV, the controllers' update
 statistics (``losses.csv``) and TensorBoard scalars; for domains with subgoals also
 ``visits.csv`` (per episode: steps at each subgoal's place) and ``options.csv`` (one row
 per option of a hierarchical agent)."""
@@ -6,7 +6,10 @@ from __future__ import annotations
 
 import csv
 import warnings
+from collections import defaultdict
 from pathlib import Path
+
+import numpy as np
 
 TRAIN_COLUMNS = ["episode", "env_steps", "steps", "reward", "extrinsic", "intrinsic", "success",
                  "options", "eps_sub", "eps_meta", "wall_s"]
@@ -114,3 +117,32 @@ class MetricsLog:
             f.close()
         if self.tb is not None:
             self.tb.close()
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    if not path.exists():
+        return []
+    with open(path, newline="", encoding="utf-8") as f:
+        return list(csv.DictReader(f))
+
+
+def _columns(rows: list[dict[str, str]], skip: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """``rows``' columns (but ``skip``) as float arrays; an empty cell is NaN."""
+    return {k: np.array([float(r[k]) if r[k] else np.nan for r in rows]) for k in rows[0] if k not in skip}
+
+
+def read_csv(path: Path) -> dict[str, np.ndarray]:
+    """Columns of a metrics CSV as float arrays, NaN for an empty cell (empty dict for a
+    missing/empty file)."""
+    rows = _rows(path)
+    return _columns(rows) if rows else {}
+
+
+def read_losses(path: Path) -> dict[str, dict[str, np.ndarray]]:
+    """``losses.csv``'s rows per controller: controller -> column -> float array (empty dict
+    for a missing/empty file)."""
+    rows = _rows(path)
+    by_controller: dict[str, list] = defaultdict(list)
+    for row in rows:
+        by_controller[row["controller"]].append(row)
+    return {name: _columns(mine, skip=("controller",)) for name, mine in by_controller.items()}

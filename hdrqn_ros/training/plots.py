@@ -4,12 +4,12 @@ each controller's TD loss, mean Q and gradient norm; runs sharing a label (seeds
 as their mean with a min-max band."""
 from __future__ import annotations
 
-import csv
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 import yaml
+
+from hdrqn_ros.training.metrics import read_csv, read_losses
 
 PANELS = [("reward", "reward (classical)"), ("steps", "steps per episode"), ("extrinsic", "extrinsic reward"),
           ("intrinsic", "intrinsic reward"), ("success", "ordered success ratio")]
@@ -17,35 +17,6 @@ LOSS_PANELS = [("td_loss", "TD loss"), ("q_taken", "mean Q of the taken actions"
                ("grad_norm", "gradient norm before clipping")]
 CONTROLLER_LINES = {"sub": "-", "meta": "--"}
 """Line style of each controller in the loss panels."""
-
-
-def _rows(path: Path) -> list[dict[str, str]]:
-    if not path.exists():
-        return []
-    with open(path, newline="", encoding="utf-8") as f:
-        return list(csv.DictReader(f))
-
-
-def _columns(rows: list[dict[str, str]], skip: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
-    """``rows``' columns (but ``skip``) as float arrays; an empty cell is NaN."""
-    return {k: np.array([float(r[k]) if r[k] else np.nan for r in rows]) for k in rows[0] if k not in skip}
-
-
-def read_csv(path: Path) -> dict[str, np.ndarray]:
-    """Columns of a metrics CSV as float arrays, NaN for an empty cell (empty dict for a
-    missing/empty file)."""
-    rows = _rows(path)
-    return _columns(rows) if rows else {}
-
-
-def read_losses(path: Path) -> dict[str, dict[str, np.ndarray]]:
-    """``losses.csv``'s rows per controller: controller -> column -> float array (empty dict
-    for a missing/empty file)."""
-    rows = _rows(path)
-    by_controller: dict[str, list] = defaultdict(list)
-    for row in rows:
-        by_controller[row["controller"]].append(row)
-    return {name: _columns(mine, skip=("controller",)) for name, mine in by_controller.items()}
 
 
 def moving_average(x: np.ndarray, window: int) -> np.ndarray:

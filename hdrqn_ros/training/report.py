@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrqn_ros.training.plots import plot_runs, plot_subgoal_visits, plot_success_ratio, read_csv
+from hdrqn_ros.training.metrics import read_csv
+from hdrqn_ros.training.plots import plot_runs, plot_subgoal_visits, plot_success_ratio
 from hdrqn_ros.training.subgoals import option_table_markdown
 
 

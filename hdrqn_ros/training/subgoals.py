@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from hdrqn_ros.training.episodes import OptionOutcome
-from hdrqn_ros.training.plots import read_csv
+from hdrqn_ros.training.metrics import read_csv
 
 START_NAME = "elsewhere"
 """Label of options that began outside every subgoal's place (episode start, after a death)."""

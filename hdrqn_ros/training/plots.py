@@ -4,6 +4,7 @@ each controller's TD loss, mean Q and gradient norm; runs sharing a label (seeds
 as their mean with a min-max band."""
 from __future__ import annotations
 
+from collections import defaultdict
 from pathlib import Path
 
 import numpy as np

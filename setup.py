@@ -8,9 +8,7 @@ ROS_WHEELS = ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-rcl-interfaces", "ros-jazz
               "ros-jazzy-ament-index-python", "ros-jazzy-std-msgs", "ros-jazzy-std-srvs", "ros-jazzy-sensor-msgs",
               "ros-jazzy-geometry-msgs", "ros-jazzy-nav-msgs", "ros-jazzy-rosgraph-msgs", "ros-jazzy-diagnostic-msgs",
               "ros-jazzy-visualization-msgs"]
-"""The ``ros`` extra: exactly the ROS packages hdrqn_ros imports (test/test_packaging.py)."""", "ros-jazzy-std-msgs", "ros-jazzy-sensor-msgs", "ros-jazzy-geometry-msgs",
-              "ros-jazzy-nav-msgs", "ros-jazzy-rosgraph-msgs", "ros-jazzy-std-srvs", "ros-jazzy-diagnostic-msgs",
-              "ros-jazzy-visualization-msgs"]
+"""The ``ros`` extra: exactly the ROS packages hdrqn_ros imports (test/test_packaging.py)."""
 
 setup(
     name=PACKAGE,

@@ -26,7 +26,7 @@ PROBE = r"""
 import json, sys, time, types, logging
 import numpy as np
 from hdrqn_ros.agents.policy import HierarchicalPolicy
-from hdrqn_ros.deploy.specs import ALGO_SPECS, stack_subgoal
+from hdrqn_ros.agents.specs import ALGO_SPECS, stack_subgoal
 from hdrqn_ros.nodes.acting import make_acting_network
 
 role, acting, decisions = sys.argv[1], sys.argv[2], int(sys.argv[3])

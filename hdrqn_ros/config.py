@@ -12,10 +12,10 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from hdrqn_ros.agents.specs import ALGO_SPECS, ALGOS
 from hdrqn_ros.yaml_files import read_mapping, safe_load
 
-ALGOS = ("hdrqn-v2", "hdrqn-v1", "hdqn", "drqn", "dqn")
-Algo = Literal["hdrqn-v2", "hdrqn-v1", "hdqn", "drqn", "dqn"]
+Algo = Literal[ALGOS]
 
 
 class ConfigError(ValueError):
@@ -118,8 +118,6 @@ class TrainConfig(_Strict):
         """What ``role``'s controller learns with, its learning rate resolved: ``"sub"`` is the
         sub-controller of a hierarchical agent or the one controller of a flat one (``flat``),
         ``"meta"`` the meta-controller."""
-        from hdrqn_ros.deploy.specs import ALGO_SPECS
-
         spec = ALGO_SPECS[self.algo]
         if role == "sub":
             section = self.sub if spec.hierarchical else self.flat
@@ -137,8 +135,6 @@ class TrainConfig(_Strict):
         differently from ``saved`` (a checkpoint's config), leaving out the budget (``episodes``)
         and the controller sections this agent does not use (``flat`` for a hierarchical agent,
         ``sub`` and ``meta`` for a flat one)."""
-        from hdrqn_ros.deploy.specs import ALGO_SPECS
-
         unused = {"flat"} if ALGO_SPECS[self.algo].hierarchical else {"sub", "meta"}
         changes: list[str] = []
 

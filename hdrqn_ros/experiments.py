@@ -15,7 +15,8 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-BASELINES = ("hdrqn-v2", "hdrqn-v1", "hdqn", "drqn", "dqn")
+from hdrqn_ros.agents.specs import ALGOS
+
 RUN_METRICS = ("train.csv", "eval.csv", "losses.csv", "visits.csv", "options.csv", "phase1.json", "phase1.md")
 """A run's metrics files (:mod:`hdrqn_ros.training.metrics`, the phase-1 report)."""
 
@@ -112,7 +113,7 @@ def _exp3(domain: str, goals: int) -> Experiment:
         f"exp3-{domain}-{goals}goals",
         f"Experiment 3: hDRQN against the baselines ({goals} goals, {domain}, 5x5 view)",
         "hDRQNv2 > hDRQNv1 > hDQN > DRQN / DQN.", f"exp3_{domain}_{goals}goals.yaml",
-        tuple((algo, (fig,), algo, (), None) for algo in BASELINES), {fig: f"{goals} goals in {domain}"})
+        tuple((algo, (fig,), algo, (), None) for algo in ALGOS), {fig: f"{goals} goals in {domain}"})
 
 
 def _exp4() -> Experiment:
@@ -120,7 +121,7 @@ def _exp4() -> Experiment:
         "exp4-montezuma", "Experiment 4: Montezuma's Revenge, first room (phase 1: sub-controller only, then both)",
         "DQN and DRQN score 0; hDRQNv2 learns to pick up the key (figure 4.13a) and visits the subgoals on "
         "the way to it most (figure 4.13b); hDRQNv2 beats hDRQNv1 and hDQN.",
-        "exp4_montezuma.yaml", tuple((algo, ("fig4.12",), algo, (), None) for algo in BASELINES),
+        "exp4_montezuma.yaml", tuple((algo, ("fig4.12",), algo, (), None) for algo in ALGOS),
         {"fig4.12": "Montezuma's Revenge, first room",
          "fig4.13a": "success ratio of picking up the key (training)",
          "fig4.13b": "steps at each subgoal per episode (phase 2)"})

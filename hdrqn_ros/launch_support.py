@@ -8,7 +8,7 @@ from typing import Callable
 
 import yaml
 
-from hdrqn_ros.deploy.specs import ALGO_SPECS
+from hdrqn_ros.agents.specs import ALGO_SPECS
 
 PACKAGE = "hdrqn_ros"
 ALGOS = tuple(ALGO_SPECS)

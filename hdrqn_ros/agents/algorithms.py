@@ -11,7 +11,7 @@
 The sub-controller of a hierarchical agent sees the observation and the subgoal image
 stacked to 6 channels; a flat agent's controller sees the observation (3 channels) and
 learns from the classical reward. The table itself (:data:`ALGO_SPECS`) and
-:func:`stack_subgoal` live in the torch-free :mod:`hdrqn_ros.deploy.specs`.
+:func:`stack_subgoal` live in the torch-free :mod:`hdrqn_ros.agents.specs`.
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from hdrqn_ros.agents.controller import Controller
 from hdrqn_ros.agents.networks import lstm_state_size, make_image_qnet, make_state_qnet
 from hdrqn_ros.agents.replay import SequenceBatch
 from hdrqn_ros.config import TrainConfig
-from hdrqn_ros.deploy.specs import ALGO_SPECS, stack_subgoal  # noqa: F401 (torch-free; re-exported)
+from hdrqn_ros.agents.specs import ALGO_SPECS, stack_subgoal  # noqa: F401 (torch-free; re-exported)
 
 
 def make_network(algo: str, role: str, num_actions: int, num_subgoals: int):

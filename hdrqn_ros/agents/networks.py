@@ -29,7 +29,7 @@ import torch
 from torch import Tensor, nn
 
 from hdrqn_ros.agents.lstm_sequence import lstm_sequence
-from hdrqn_ros.deploy.specs import STATE_SIZE
+from hdrqn_ros.agents.specs import STATE_SIZE
 from hdrqn_ros.envs.domain import OBS_SIZE
 
 __all__ = [

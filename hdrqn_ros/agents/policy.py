@@ -31,7 +31,7 @@ from typing import Literal, Protocol
 
 import numpy as np
 
-from hdrqn_ros.deploy.specs import STATE_SIZE
+from hdrqn_ros.agents.specs import STATE_SIZE
 from hdrqn_ros.envs.domain import NO_SUBGOAL, StepBatch
 
 

@@ -1,7 +1,8 @@
-"""The algorithms' shapes as plain data: the one table both the torch side
-(:mod:`hdrqn_ros.agents.algorithms`, :mod:`hdrqn_ros.agents.networks`) and the torch-free
-side (:mod:`hdrqn_ros.deploy.onnx_policy`, the controller nodes acting from an exported
-policy) read. Imports only the standard library and numpy: no torch, no onnxruntime.
+"""The five algorithms as plain data: the one table every list of algorithm names is taken
+from, read by the torch side (:mod:`hdrqn_ros.agents.algorithms`, :mod:`hdrqn_ros.agents.networks`),
+the torch-free side (:mod:`hdrqn_ros.deploy.onnx_policy`, the controller nodes acting from an
+exported policy), the config, the nodes and the launch files. Imports only the standard library
+and numpy: no torch, no onnxruntime.
 """
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from typing import Literal
 
 import numpy as np
 
-__all__ = ["AlgoSpec", "ALGO_SPECS", "STATE_SIZE", "PolicyError", "stack_subgoal"]
+__all__ = ["AlgoSpec", "ALGO_SPECS", "ALGOS", "STATE_SIZE", "stack_subgoal"]
 
 STATE_SIZE = 256
 """The LSTM state size (``h`` and ``c`` are (B, 256)); ``hdrqn_ros.agents.networks.lstm_state_size``."""
@@ -31,11 +32,8 @@ ALGO_SPECS: dict[str, AlgoSpec] = {
     "dqn": AlgoSpec(hierarchical=False, recurrent=False, meta_input=None),
 }
 """The five algorithms (thesis table 4.4; see :mod:`hdrqn_ros.agents.algorithms`)."""
-
-
-class PolicyError(ValueError):
-    """A policy directory that cannot be used: a missing or unreadable file, a hash that
-    does not match, or a model whose inputs/outputs do not fit the declared algorithm."""
+ALGOS = tuple(ALGO_SPECS)
+"""Their names, in the table's order (the default first)."""
 
 
 def stack_subgoal(obs: np.ndarray, subgoal_image: np.ndarray) -> np.ndarray:

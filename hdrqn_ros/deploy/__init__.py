@@ -2,13 +2,14 @@
 
 ``OnnxPolicy.load(DIR)`` reads a directory written by ``hdrqn export`` (torch side:
 :func:`hdrqn_ros.training.export.export_policy`). Nothing here imports torch.
-:mod:`hdrqn_ros.deploy.specs` (the algorithm table, numpy only) is what the torch side
-reads too, so this package imports onnxruntime only when one of the names below that
-need it is first used.
+:mod:`hdrqn_ros.agents.specs` (the algorithm table, numpy only) is what the torch side
+reads too; this package imports onnxruntime only when one of the names below that need it
+is first used.
 """
 from __future__ import annotations
 
-from hdrqn_ros.deploy.specs import PolicyError, stack_subgoal
+from hdrqn_ros.agents.specs import stack_subgoal
+from hdrqn_ros.deploy.errors import PolicyError
 
 __all__ = ["POLICY_FILE", "OnnxPolicy", "PolicyError", "TensorSpec", "role_io", "stack_subgoal"]
 

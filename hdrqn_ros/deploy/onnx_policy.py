@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from hdrqn_ros.deploy.specs import ALGO_SPECS, STATE_SIZE, PolicyError, stack_subgoal
+from hdrqn_ros.deploy.errors import PolicyError
+from hdrqn_ros.agents.specs import ALGO_SPECS, STATE_SIZE, stack_subgoal
 from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.hashing import file_sha256
 
@@ -37,7 +38,7 @@ POLICY_FORMAT = "hdrqn_ros-policy"
 POLICY_VERSION = 1
 ALGOS: dict[str, dict] = {algo: {"hierarchical": spec.hierarchical, "recurrent": spec.recurrent,
                                "meta_input": spec.meta_input} for algo, spec in ALGO_SPECS.items()}
-""":data:`hdrqn_ros.deploy.specs.ALGO_SPECS` as plain dicts."""
+""":data:`hdrqn_ros.agents.specs.ALGO_SPECS` as plain dicts."""
 
 LSTMState = tuple[np.ndarray, np.ndarray]
 

@@ -9,7 +9,8 @@ import sys
 import threading
 from typing import Any, Callable
 
-from hdrqn_ros.deploy.specs import ALGO_SPECS, PolicyError
+from hdrqn_ros.deploy.errors import PolicyError
+from hdrqn_ros.agents.specs import ALGO_SPECS
 from hdrqn_ros.envs.registration import GRID_IDS, MONTEZUMA_IDS, make_batch
 from hdrqn_ros.extras import MissingExtra
 from hdrqn_ros.middleware import (BackendError, Middleware, Node, ParameterError, ParameterRule, RosArgsError,

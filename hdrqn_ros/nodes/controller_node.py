@@ -13,7 +13,7 @@ from __future__ import annotations
 from std_msgs.msg import Float64MultiArray
 
 from hdrqn_ros.agents.policy import HierarchicalPolicy
-from hdrqn_ros.deploy.specs import ALGO_SPECS
+from hdrqn_ros.agents.specs import ALGO_SPECS
 from hdrqn_ros.nodes.acting import make_acting_network
 from hdrqn_ros.nodes.diagnostics import OK, WARN, Diagnostics, policy_source
 from hdrqn_ros.nodes.graph_parameters import ENV_PARAMETERS, MAX_MESSAGE_BYTES, NUM_ENVS

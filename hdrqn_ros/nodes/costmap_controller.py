@@ -8,7 +8,7 @@ import numpy as np
 from nav_msgs.msg import OccupancyGrid
 from std_msgs.msg import Int64MultiArray
 
-from hdrqn_ros.deploy.specs import stack_subgoal
+from hdrqn_ros.agents.specs import stack_subgoal
 from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.nodes.controller_node import ControllerNode
 from hdrqn_ros.nodes.nav import SubgoalTable, costmap_to_observation

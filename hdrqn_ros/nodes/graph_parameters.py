@@ -3,7 +3,7 @@ and what the nodes derive from them. The launch files set the shared ones once f
 with a ``/**`` entry."""
 from __future__ import annotations
 
-from hdrqn_ros.deploy.specs import ALGO_SPECS
+from hdrqn_ros.agents.specs import ALGO_SPECS
 from hdrqn_ros.envs.registration import GRID_IDS, MONTEZUMA_IDS, make_batch
 from hdrqn_ros.nodes.parameters import Param
 from hdrqn_ros.nodes.ros_messages import DEFAULT_MAX_MESSAGE_BYTES

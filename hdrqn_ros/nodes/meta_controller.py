@@ -15,7 +15,7 @@ import numpy as np
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float64MultiArray, Int64MultiArray
 
-from hdrqn_ros.deploy.specs import ALGO_SPECS, STATE_SIZE
+from hdrqn_ros.agents.specs import ALGO_SPECS, STATE_SIZE
 from hdrqn_ros.nodes.controller_node import CONTROLLER_PARAMETERS, ControllerNode
 from hdrqn_ros.nodes.lockstep import LockStepController
 from hdrqn_ros.nodes.nav_adapters import GOAL_PARAMETERS, GoalPoses

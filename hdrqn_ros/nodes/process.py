@@ -30,7 +30,7 @@ from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
-from hdrqn_ros.deploy.specs import PolicyError
+from hdrqn_ros.deploy.errors import PolicyError
 from hdrqn_ros.extras import MissingExtra
 from hdrqn_ros.middleware.network import apply_rmw_network_defaults
 from hdrqn_ros.middleware.ros_args import INTERFACE_ENV

@@ -16,7 +16,7 @@ import numpy as np
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float64MultiArray, Int64MultiArray
 
-from hdrqn_ros.deploy.specs import stack_subgoal
+from hdrqn_ros.agents.specs import stack_subgoal
 from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.nodes.controller_node import CONTROLLER_PARAMETERS, ControllerNode
 from hdrqn_ros.nodes.costmap_controller import OBSERVATION_PARAMETERS, CostmapSubController

@@ -42,7 +42,7 @@ setup(
         "mcap>=1.1",
         "mcap-ros2-support>=0.5",
     ],
-    package_data={PACKAGE: ["middleware/fastdds_loopback.xml"]},
+    package_data={PACKAGE: ["dds/fastdds_loopback.xml"]},
     extras_require={
         "test": ["pytest>=8", "pytest-rerunfailures>=16.3", "hypothesis>=6.100", "onnxruntime>=1.17", "onnx>=1.15",
                  "ray>=2.9"],

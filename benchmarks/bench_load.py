@@ -1,7 +1,7 @@
 """Load: N actor groups -> 1 learner (default 8) on this machine, for a few minutes.
 
 Starts the real training graph (``hdrqn up --groups N``'s processes: per group an
-environment, critic, meta- and sub-controller; one learner) over Cyclone DDS on the
+environment, critic, meta- and sub-controller; one learner) as rclpy nodes (Fast DDS) on the
 loopback interface in its own domain, lets it train for ``--seconds`` after every group
 has stepped, then stops every process and reports:
 
@@ -492,7 +492,7 @@ def run(args, base: Path) -> dict:
     wall = max(duration, 1e-9)
 
     return {
-        "benchmark": "load: groups -> 1 learner over Cyclone DDS (loopback)",
+        "benchmark": "load: groups -> 1 learner over rclpy / Fast DDS (loopback)",
         "machine_cores": os.cpu_count(),
         "loadavg_1min_start_end": [round(load_start[0], 2), round(load_end[0], 2)],
         "config": {"algo": cfg.algo, "env": cfg.env, "view": cfg.env_kwargs.get("view", 5), "seed": cfg.seed,

@@ -52,7 +52,6 @@ import torch
 import hdrqn_ros  # noqa: F401  (registers the ids)
 from hdrqn_ros.config import build_config
 from hdrqn_ros.envs.registration import make_batch
-from hdrqn_ros.middleware import chosen_backend
 from hdrqn_ros.recording.transitions import TransitionRecorder
 from hdrqn_ros.training.rollout import Rollout
 from hdrqn_ros.training.learner import build_agent
@@ -209,21 +208,20 @@ def bench_recorder(threads: int, tmp: Path, steps: int = 200, passes: int = 5) -
 
 def bench_graph_recording(seconds: float, reps: int, tmp: Path) -> dict:
     """bench_graph's training measurement without / with the learner's ``record`` parameter."""
-    from bench_graph import graph_training_rate  # benchmarks/ is sys.path[0] when run as a script
+    from bench_graph import graph_run_dir, graph_training_rate  # benchmarks/ is sys.path[0] when run as a script
 
     os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
-    backend = chosen_backend()
     without, with_, sizes = [], [], []
     for i in range(reps):
         a = tmp / f"graph_plain{i}"
         a.mkdir()
-        without.append(graph_training_rate(seconds, a, backend)["steps_per_s"])
+        without.append(graph_training_rate(seconds, a)["steps_per_s"])
         b = tmp / f"graph_rec{i}"
         b.mkdir()
         bag = b / "bag"
-        with_.append(graph_training_rate(seconds, b, backend, learner={"record": str(bag)})["steps_per_s"])
+        with_.append(graph_training_rate(seconds, b, learner={"record": str(bag)})["steps_per_s"])
         try:  # the learner's last status: env steps it took in (all of them recorded)
-            steps = json.loads((b / f"graph1-{backend}" / "status.json").read_text())["env_steps"]
+            steps = json.loads((graph_run_dir(b) / "status.json").read_text())["env_steps"]
         except (OSError, ValueError, KeyError):
             steps = 0
         sizes.append(round(_bag_bytes(bag) / steps, 1) if bag.exists() and steps else None)

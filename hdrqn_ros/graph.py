@@ -12,9 +12,8 @@ from pathlib import Path
 
 import yaml
 
-from hdrqn_ros.agents.algorithms import ALGO_SPECS
+from hdrqn_ros.agents.specs import ALGO_SPECS
 from hdrqn_ros.config import TrainConfig
-from hdrqn_ros.middleware import BACKEND_ENV
 from hdrqn_ros.nodes import STACK_DUMP_SIGNAL
 from hdrqn_ros.protocol.wire import group_namespaces
 from hdrqn_ros.supervisor import ProcessSpec, python_command
@@ -28,13 +27,11 @@ def view_parameter(cfg: TrainConfig) -> str:
     return str(cfg.env_kwargs.get("view", 5))
 
 
-def write_params(cfg: TrainConfig, run_dir: Path, groups: int, config_file: Path, interface: str | None = None,
-                 extra: dict | None = None, num_envs: int = 1) -> Path:
+def write_params(cfg: TrainConfig, run_dir: Path, groups: int, config_file: Path, extra: dict | None = None,
+                 num_envs: int = 1) -> Path:
     """Write ``run_dir/params.yaml`` for the graph of ``cfg`` (``num_envs`` environments
     per environment node) and return its path."""
     shared = {"algo": cfg.algo, "env": cfg.env, "view": view_parameter(cfg), "seed": cfg.seed}
-    if interface:
-        shared["dds_interface"] = interface
     doc = {
         "/**": {"ros__parameters": shared},
         "/**/environment": {"ros__parameters": {"wait_for_learner": True, "num_envs": num_envs}},
@@ -52,18 +49,8 @@ def write_params(cfg: TrainConfig, run_dir: Path, groups: int, config_file: Path
     return path
 
 
-def graph_processes(cfg: TrainConfig, params: Path, groups: int, respawn: bool = True,
-                    middleware: dict[str, str] | None = None) -> list[ProcessSpec]:
-    """The processes of the graph: per group its nodes (seeded ``seed + 1000 * i``), then the learner.
-
-    ``middleware`` maps node names ("environment", ..., "learner") to the backend that node's
-    processes use (``HDRQN_MIDDLEWARE``: rclpy or cyclone), e.g. for a mixed graph; nodes not
-    named inherit the supervisor's environment."""
-    middleware = middleware or {}
-
-    def env(node: str) -> dict[str, str] | None:
-        return {BACKEND_ENV: middleware[node]} if node in middleware else None
-
+def graph_processes(cfg: TrainConfig, params: Path, groups: int, respawn: bool = True) -> list[ProcessSpec]:
+    """The processes of the graph: per group its nodes (seeded ``seed + 1000 * i``), then the learner."""
     hierarchical = ALGO_SPECS[cfg.algo].hierarchical
     nodes = ["environment", "critic", "meta_controller", "sub_controller"] if hierarchical else \
         ["environment", "sub_controller"]
@@ -75,8 +62,8 @@ def graph_processes(cfg: TrainConfig, params: Path, groups: int, respawn: bool =
             if node == "environment" and i > 0:
                 argv += ["-p", "publish_clock:=false"]  # one sim clock: group 0's
             specs.append(ProcessSpec(name=f"{ns.strip('/') or 'graph'}/{node}", argv=argv, respawn=respawn,
-                                     env=env(node), stack_dump_signal=STACK_DUMP_SIGNAL))
+                                     stack_dump_signal=STACK_DUMP_SIGNAL))
     learner_argv = python_command(NODE_MODULES["learner"]) + ["--ros-args", "--params-file", str(params), "-p", "resume:=true"]
-    specs.append(ProcessSpec(name="learner", argv=learner_argv, respawn=respawn, required=True, env=env("learner"),
+    specs.append(ProcessSpec(name="learner", argv=learner_argv, respawn=respawn, required=True,
                              stack_dump_signal=STACK_DUMP_SIGNAL))
     return specs

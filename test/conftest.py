@@ -1,24 +1,24 @@
-"""Fixtures shared by the multi-process tests: the middleware backend the node processes run on."""
+"""Helpers shared by the multi-process tests: node processes and the test's own probe node (rclpy)."""
 from __future__ import annotations
 
 import pytest
 
 from hdrqn_ros.graph import NODE_MODULES
-from hdrqn_ros.middleware import BACKEND_ENV, open_middleware
-from hdrqn_ros.middleware.rclpy_backend import rclpy_available
+import importlib.util
+
 from hdrqn_ros.nodes import STACK_DUMP_SIGNAL
 from hdrqn_ros.supervisor import ProcessSpec, python_command
 
-NO_RCLPY = pytest.mark.skipif(not rclpy_available(), reason="rclpy (the ROS 2 Jazzy wheels, extra [ros]) is not "
-                                                            "installed: scripts/install installs it on Linux x86-64")
-BACKEND_PARAMS = [pytest.param("rclpy", marks=NO_RCLPY), "cyclone"]
+NEEDS_RCLPY = pytest.mark.skipif(importlib.util.find_spec("rclpy") is None, reason="rclpy (ROS 2 Jazzy) cannot be imported: "
+                                                                "scripts/install installs its wheels on Linux x86-64")
+"""For a test outside PROCESS_MODULES (those skip without rclpy as a whole) that needs rclpy."""
 PROCESS_MODULES = {"test_graph", "test_faults", "test_multihost", "test_player", "test_bag", "test_robot_nodes",
                    "test_managed_nodes", "test_deploy_nodes", "test_loopback", "test_ros_tooling", "test_bounds",
                    "test_untrusted_data"}
 """Modules whose tests start node processes or join DDS (each on a domain of its own): marked
 ``processes``. ``scripts/test`` runs them one at a time in one pytest while a second pytest
 runs every other test beside it (the load of one busy core, which ``scripts/stress`` shows
-they stand, repeating ``-m processes``)."""
+they stand, repeating ``-m processes``). They need rclpy: without it they are skipped."""
 
 
 def pytest_collection_modifyitems(items):
@@ -26,7 +26,8 @@ def pytest_collection_modifyitems(items):
         module = getattr(item.module, "__name__", None)
         if module in PROCESS_MODULES:
             item.add_marker(pytest.mark.processes)
-        elif {"backend", "domain"} & set(getattr(item, "fixturenames", ())):
+            item.add_marker(NEEDS_RCLPY)
+        elif "domain" in getattr(item, "fixturenames", ()):
             raise pytest.UsageError(f"{item.nodeid} starts node processes: add {module} to PROCESS_MODULES in "
                                     "test/conftest.py, so that it never runs beside another such test")
 
@@ -41,17 +42,12 @@ def ros_log_dir(tmp_path_factory):
     mp.undo()
 
 
-@pytest.fixture(params=BACKEND_PARAMS)
-def backend(request, monkeypatch) -> str:
-    """Each test runs twice: node processes (and the test's own probe node) on real rclpy,
-    then on the Cyclone DDS backend (``HDRQN_MIDDLEWARE`` is inherited by subprocesses)."""
-    monkeypatch.setenv(BACKEND_ENV, request.param)
-    return request.param
+def ros_probe():
+    """The test process's own rclpy context and executor (:class:`ros_probe.RosProbe`, loopback
+    defaults applied), on the test's ``domain`` (``ROS_DOMAIN_ID``)."""
+    from ros_probe import RosProbe
 
-
-def probe_middleware(backend: str):
-    """The test process's own middleware, on ``backend`` (loopback defaults applied)."""
-    return open_middleware(["probe"], backend)
+    return RosProbe(["probe"])
 
 
 def node_process(name: str, node: str, *ros_args: str) -> ProcessSpec:

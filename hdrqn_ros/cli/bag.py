@@ -21,7 +21,7 @@ def add_bag(sub) -> None:
         "play", help="publish a bag's messages on their recorded topics, paced by their timestamps (ros2 bag play)",
         description="Runs the player node (hdrqn_ros/nodes/player.py) in this process: each message goes out on its "
                     "recorded topic with the recorded QoS, /clock carries the bag time. The node runs on rclpy "
-                    "where it can be imported, else on Cyclone DDS (--middleware); DDS stays on the loopback "
+                    "(ROS 2 Jazzy: the 'ros' extra on Linux x86-64); DDS stays on the loopback "
                     "interface unless --interface is given. Put --topics after the bag directories.")
     play.add_argument("bags", nargs="+", metavar="BAG_DIR", help="bag directories, played together in timestamp order")
     play.add_argument("--rate", type=float, default=1.0, help="playback speed: bag seconds per second (default 1.0)")
@@ -34,16 +34,14 @@ def add_bag(sub) -> None:
                       help="before playing, wait until every topic has at least N subscribers (default 0: no wait)")
     play.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)")
     play.add_argument("--interface", help="network interface for DDS (default: loopback only)")
-    play.add_argument("--middleware", choices=("auto", "rclpy", "cyclone"), default=None,
-                      help="node backend (default: $HDRQN_MIDDLEWARE or auto: rclpy where it can be imported)")
 
 
 def _bag_play(args) -> int:
     """``hdrqn bag play``: the player node in this process."""
     import math
 
-    from hdrqn_ros.middleware import BACKEND_ENV, BackendError, chosen_backend
-    from hdrqn_ros.middleware.ros_args import INTERFACE_ENV
+    from hdrqn_ros.dds import INTERFACE_ENV
+    from hdrqn_ros.nodes.ros_packages import RosNotInstalled, require_rclpy
 
     if not (math.isfinite(args.rate) and args.rate > 0):
         raise UsageError(f"--rate must be > 0, got {args.rate}")
@@ -60,11 +58,11 @@ def _bag_play(args) -> int:
     parameters = {"bag": list(args.bags), "rate": float(args.rate), "loop": bool(args.loop),
                   "topics": list(args.topics) or [""], "clock": not args.no_clock, "delay": float(args.delay),
                   "wait_for_subscribers": int(args.wait_for_subscribers)}
-    if args.interface:  # a process setting of the middleware, like ROS_DOMAIN_ID
+    if args.interface:  # a process setting, like ROS_DOMAIN_ID
         os.environ[INTERFACE_ENV] = args.interface
     try:
-        os.environ[BACKEND_ENV] = chosen_backend(args.middleware)
-    except BackendError as exc:
+        require_rclpy()
+    except RosNotInstalled as exc:
         raise UsageError(str(exc)) from None
 
     def progress(player) -> None:

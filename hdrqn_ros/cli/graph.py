@@ -16,13 +16,12 @@ MAX_GROUPS = 64
 def add_up(sub) -> None:
     from hdrqn_ros.config import ALGOS
     from hdrqn_ros.envs.registration import ENV_IDS
-    from hdrqn_ros.middleware import BACKENDS
 
     parser = sub.add_parser("up",
-                            help="train over the ROS 2 node graph: each node a separate process (rclpy or Cyclone DDS)",
+                            help="train over the ROS 2 node graph: each node a separate rclpy process",
                             description="Start the environment, critic, meta-controller, sub-controller and learner "
-                                        "nodes as OS processes (real rclpy nodes where rclpy is installed, else the "
-                                        "Cyclone DDS backend; no ROS install needed), show a live status line, and "
+                                        "nodes as OS processes (rclpy nodes: they need ROS 2 Jazzy, the 'ros' extra "
+                                        "on Linux x86-64), show a live status line, and "
                                         "stop them all when the learner finishes or on Ctrl-C. DDS stays on the "
                                         "loopback interface unless --interface is given. "
                                         "Node logs go to RUN_DIR/logs/.")
@@ -41,10 +40,6 @@ def add_up(sub) -> None:
                              "controllers act on the whole batch in one forward pass; default 1)")
     parser.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)")
     parser.add_argument("--interface", help="network interface for DDS (default: loopback only)")
-    parser.add_argument("--middleware", choices=BACKENDS, default=None,
-                        help="node backend: rclpy (real ROS 2 nodes), cyclone (Cyclone DDS with ROS 2's wire "
-                             "conventions) or auto: rclpy where it can be imported "
-                             "(default: $HDRQN_MIDDLEWARE or auto)")
     parser.add_argument("--no-respawn", action="store_true", help="do not restart nodes that exit unexpectedly")
     parser.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
     parser.add_argument("--record", metavar="BAG_DIR",
@@ -56,17 +51,19 @@ def cmd_up(args) -> int:
     import yaml
 
     from hdrqn_ros.graph import graph_processes, write_params
-    from hdrqn_ros.middleware import BACKEND_ENV, BackendError, ParameterError, chosen_backend
-    from hdrqn_ros.middleware.network import check_user_fastdds_profile
+    from hdrqn_ros.dds import INTERFACE_ENV, NetworkConfigError, check_user_fastdds_profile, interface_address
+    from hdrqn_ros.nodes.ros_packages import RosNotInstalled, require_rclpy
     from hdrqn_ros.supervisor import Supervisor
     from hdrqn_ros.training.plots import plot_runs
 
     run_dir = Path(args.out)
     try:
-        backend = chosen_backend(args.middleware)
-        if backend == "rclpy" and not args.interface:
+        require_rclpy()
+        if args.interface:
+            interface_address(args.interface)
+        else:
             check_user_fastdds_profile()
-    except (BackendError, ParameterError) as exc:
+    except (RosNotInstalled, NetworkConfigError) as exc:
         raise UsageError(str(exc)) from None
     if not 1 <= args.groups <= MAX_GROUPS:
         raise UsageError(f"--groups must be in 1..{MAX_GROUPS} (4 node processes each), got {args.groups}")
@@ -82,16 +79,14 @@ def cmd_up(args) -> int:
     if args.record and os.path.lexists(args.record):
         raise UsageError(f"{args.record} already exists; refusing to overwrite a recording")
     extra = {"learner": {"record": str(Path(args.record).resolve())}} if args.record else None
-    params = write_params(cfg, run_dir, args.groups, config_file, interface=args.interface, extra=extra,
-                          num_envs=args.num_envs)
-    env = {BACKEND_ENV: backend}
+    params = write_params(cfg, run_dir, args.groups, config_file, extra=extra, num_envs=args.num_envs)
+    env = {INTERFACE_ENV: args.interface} if args.interface else {}
     if args.domain_id is not None:
         if not 0 <= args.domain_id <= 232:
             raise UsageError(f"--domain-id must be in 0..232, got {args.domain_id}")
         env["ROS_DOMAIN_ID"] = str(args.domain_id)
     specs = graph_processes(cfg, params, args.groups, respawn=not args.no_respawn)
-    nodes = "rclpy (ROS 2 Jazzy, Fast DDS)" if backend == "rclpy" else "Cyclone DDS"
-    print(f"starting {len(specs)} {nodes} node processes for {cfg.algo} on {cfg.env} {cfg.env_kwargs} "
+    print(f"starting {len(specs)} rclpy node processes for {cfg.algo} on {cfg.env} {cfg.env_kwargs} "
           f"({args.groups} group(s) of {args.num_envs} env(s), {cfg.episodes} episodes, DDS on {args.interface or 'loopback'}) -> {run_dir}; "
           f"node logs in {run_dir / 'logs'}", file=sys.stderr)
     summary_path = run_dir / "summary.json"

@@ -9,7 +9,6 @@ from hdrqn_ros.cli.common import UsageError
 
 
 def add_robot(sub) -> None:
-    from hdrqn_ros.middleware import BACKENDS
     from hdrqn_ros.robot_graph import MODES
 
     parser = sub.add_parser("robot", help="a trained agent drives the loopback robot (Nav2's topics: odom, costmaps, "
@@ -36,8 +35,6 @@ def add_robot(sub) -> None:
     parser.add_argument("--record", metavar="BAG_DIR",
                         help="also record the episodes to this new rosbag2 MCAP bag (a learner node; needs --policy): "
                              "hdrqn train --from-bag BAG_DIR trains on it")
-    parser.add_argument("--middleware", choices=BACKENDS, default=None,
-                        help="node backend (default: $HDRQN_MIDDLEWARE or auto)")
 
 
 def _agent_settings(args) -> tuple[str, str, str]:
@@ -59,9 +56,9 @@ def _agent_settings(args) -> tuple[str, str, str]:
 def cmd_robot(args) -> int:
     import time
 
-    from hdrqn_ros.agents.algorithms import ALGO_SPECS
+    from hdrqn_ros.agents.specs import ALGO_SPECS
     from hdrqn_ros.envs.registration import GRID_IDS
-    from hdrqn_ros.middleware import BACKEND_ENV, BackendError, chosen_backend
+    from hdrqn_ros.nodes.ros_packages import RosNotInstalled, require_rclpy
     from hdrqn_ros.robot_graph import RobotRun, robot_processes, write_params
     from hdrqn_ros.supervisor import Supervisor
 
@@ -70,8 +67,8 @@ def cmd_robot(args) -> int:
     if not args.real_time_factor >= 0:
         raise UsageError(f"--real-time-factor must be >= 0, got {args.real_time_factor}")
     try:
-        backend = chosen_backend(args.middleware)
-    except BackendError as exc:
+        require_rclpy()
+    except RosNotInstalled as exc:
         raise UsageError(str(exc)) from None
     if args.record and not args.policy:
         raise UsageError("--record needs --policy (an exported, frozen policy: hdrqn export): the recording "
@@ -91,7 +88,7 @@ def cmd_robot(args) -> int:
                    episode_log=str(episodes_path.resolve()),
                    record=str(Path(args.record).resolve()) if args.record else "", learner_dir=str(out / "learner"))
     specs = robot_processes(run, write_params(run, out / "params.yaml"), ALGO_SPECS[algo].hierarchical)
-    print(f"starting the loopback robot and {len(specs) - 1} nodes ({backend}) for {algo} on {env}, {args.mode}, "
+    print(f"starting the loopback robot and {len(specs) - 1} nodes for {algo} on {env}, {args.mode}, "
           f"{args.episodes} episodes at {args.real_time_factor:g}x real time -> {out}", file=sys.stderr)
     rows: list[dict] = []
 
@@ -108,7 +105,7 @@ def cmd_robot(args) -> int:
         return len(rows) >= args.episodes
 
     start = time.monotonic()
-    supervisor = Supervisor(specs, env={BACKEND_ENV: backend}, log_dir=out / "logs",
+    supervisor = Supervisor(specs, log_dir=out / "logs",
                             status=lambda: f"{len(rows)}/{args.episodes} episodes")
     finished_at: list[float] = []
 

@@ -3,4 +3,4 @@ import signal
 
 STACK_DUMP_SIGNAL = signal.SIGUSR1
 """The signal on which every node prints all its threads' Python stacks to stderr, and goes on
-(:func:`hdrqn_ros.nodes.common.run_node`)."""
+(:func:`hdrqn_ros.nodes.process.run_node`)."""

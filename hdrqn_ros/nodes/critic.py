@@ -13,6 +13,7 @@ judges every environment of the batch and publishes one ``critic`` record per en
 from __future__ import annotations
 
 import numpy as np
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray, Int64MultiArray
 
@@ -49,7 +50,7 @@ class CriticNode(Node, StepFollower):
         limit = params["max_message_bytes"]
         bounded_subscription(self, Float64MultiArray, wire.ENV_STEP, self.on_env_step, STEP_QOS, limit, self.logger)
         bounded_subscription(self, Int64MultiArray, wire.SUBGOAL, self._on_subgoal, STEP_QOS, limit, self.logger)
-        self.create_timer(1.0, self.check_stall)
+        self.create_timer(1.0, self.check_stall, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.option_subgoal = np.full(self.num_envs, -1)  # each environment's option's subgoal (-1: unknown)
         self.choice_at = np.zeros(self.num_envs, np.int64)  # key at which we announced option_done
 

@@ -16,7 +16,7 @@ from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion, Twist, Twist
 from std_msgs.msg import Header
 
 from hdrqn_ros.envs.gridworld import AGENT, FREE, GOAL0, GOAL_NAMES, OUTSIDE, PALETTE, WALL
-from hdrqn_ros.middleware.arrays import as_array
+from hdrqn_ros.protocol.arrays import as_array
 from hdrqn_ros.yaml_files import read_mapping
 
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"

@@ -3,7 +3,8 @@
 What every node executable's ``main`` does through :func:`run_node`:
 
 - DDS stays on the loopback interface unless ``$HDRQN_DDS_INTERFACE`` names another
-  (:func:`~hdrqn_ros.middleware.network.apply_rmw_network_defaults`, before ``rclpy.init``).
+  (:func:`~hdrqn_ros.dds.apply_rmw_network_defaults`, before ``rclpy.init``); the domain is
+  ``$ROS_DOMAIN_ID``, as for any ROS 2 process.
 - rclpy parses ``--ros-args`` (remaps, ``-p``, ``--params-file``, log levels) itself.
 - A managed node (an ``rclpy.lifecycle.LifecycleNode``) started with ``--managed`` (before
   ``--ros-args``) waits unconfigured for a lifecycle manager; without it the process
@@ -32,15 +33,14 @@ from rclpy.signals import SignalHandlerOptions
 
 from hdrqn_ros.deploy.errors import PolicyError
 from hdrqn_ros.extras import MissingExtra
-from hdrqn_ros.middleware.network import apply_rmw_network_defaults
-from hdrqn_ros.middleware.ros_args import INTERFACE_ENV
+from hdrqn_ros.dds import INTERFACE_ENV, NetworkConfigError, apply_rmw_network_defaults
 from hdrqn_ros.nodes import STACK_DUMP_SIGNAL
 from hdrqn_ros.nodes.parameters import NodeConfigError
 from hdrqn_ros.nodes.ros_messages import MissingRosPackage
 
 MANAGED_FLAG = "--managed"
 """The executable argument (before ``--ros-args``) that leaves a managed node to a lifecycle manager."""
-STARTUP_ERRORS = (NodeConfigError, PolicyError, MissingExtra, MissingRosPackage, FileNotFoundError)
+STARTUP_ERRORS = (NodeConfigError, NetworkConfigError, PolicyError, MissingExtra, MissingRosPackage, FileNotFoundError)
 """What every node reports as bad input: exit code 2 (a node adds its own to :func:`run_node`)."""
 SPIN_STEP_S = 0.05
 """The longest the spin loop waits before it checks whether the node finished or was stopped."""

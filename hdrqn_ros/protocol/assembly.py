@@ -16,7 +16,7 @@ from typing import Callable
 
 import numpy as np
 
-from hdrqn_ros.agents.algorithms import ALGO_SPECS
+from hdrqn_ros.agents.specs import ALGO_SPECS
 from hdrqn_ros.agents.networks import lstm_state_size
 from hdrqn_ros.agents.policy import StepRecord
 from hdrqn_ros.config import TrainConfig, batch_class

@@ -61,9 +61,9 @@ class KeyedInbox:
 
 class Decoder:
     """Reads messages with :meth:`decode`: a malformed one is logged (throttled per topic)
-    and counted in :attr:`rejected`. Subclasses set ``node`` (or ``None``) and ``logger``."""
+    and counted in :attr:`rejected`. Subclasses set ``logger`` (a :class:`logging.Logger`);
+    a node's ``resolve_topic_name`` names the topics in full."""
 
-    node = None
     logger = None
 
     def decode(self, topic: str, read: Callable[[], Any]) -> Any:
@@ -78,9 +78,7 @@ class Decoder:
             return None
 
     def _name(self, topic: str) -> str:
-        """``topic``'s full name: resolved by the node (an rclpy node's ``resolve_topic_name``)."""
-        if self.node is not None:
-            return self.node.resolve_topic(topic)
+        """``topic``'s full name where the subclass resolves names (an rclpy node's ``resolve_topic_name``)."""
         resolve = getattr(self, "resolve_topic_name", None)
         return resolve(topic) if resolve is not None else topic
 
@@ -106,12 +104,11 @@ class StepFollower(Decoder):
     lost_after_s = LOST_AFTER_S
     """A follower that keeps stale steps gives one up once a later step was complete this long."""
 
-    def __init__(self, node=None, capacity: int = DEFAULT_CAPACITY, logger=None, num_envs: int | None = None):
-        """``node``: the middleware node (logger, topic names, a stall-report timer); without
-        one (reading a bag) give a ``logger``. ``num_envs``: the environments per step this
-        follower works with (``None``: any)."""
-        self.node = node
-        self.logger = logger if logger is not None else node.logger
+    def __init__(self, logger, capacity: int = DEFAULT_CAPACITY, num_envs: int | None = None):
+        """``logger``: a :class:`logging.Logger` (a node's, :func:`~hdrqn_ros.nodes.node_logger.python_logger`);
+        ``num_envs``: the environments per step this follower works with (``None``: any). A
+        node calls :meth:`check_stall` every second."""
+        self.logger = logger
         self.num_envs = num_envs
         self.finished = False
         self.exit_code = 0
@@ -123,8 +120,6 @@ class StepFollower(Decoder):
         self.processed_env_steps: int | None = None  # the env node's step count at the last step processed
         self._head: tuple[int | None, float] = (None, 0.0)  # the waiting head's key, and when it was reported
         self._complete_since: float | None = None  # since when a later step is complete and the head is not
-        if node is not None:
-            node.create_timer(1.0, self.check_stall)
 
     # -- inputs ----------------------------------------------------------------------------------
     def on_env_step(self, msg) -> None:

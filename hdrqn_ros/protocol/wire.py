@@ -24,8 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hdrqn_ros.envs.domain import StepBatch
-from hdrqn_ros.middleware.arrays import as_array
-from hdrqn_ros.middleware.port import QoS
+from hdrqn_ros.protocol.arrays import as_array
 
 # topics, relative to the group's namespace unless absolute
 OBSERVATION = "observation"
@@ -68,11 +67,12 @@ CREDIT_FIELDS = ("credit_steps", "eps_sub", "eps_meta", "acked_key", "epoch")
 the controllers explore with ``eps_sub``/``eps_meta``; ``acked_key`` is the last key
 the learner stored; ``epoch`` changes when the learner restarts."""
 
-STEP_QOS = QoS(depth=1000)
-"""The per-step protocol topics: reliable, volatile, keep-last 1000. A node off the
-critical path (the meta-controller between option ends, the learner during an update)
-may fall behind by many steps without losing a sample; 1000 steps of observations are
-about 6 MB per reader."""
+STEP_DEPTH = 1000
+"""Keep-last depth (samples) of the per-step protocol topics (reliable, volatile): a node off
+the critical path (the meta-controller between option ends, the learner during an update) may
+fall behind by many steps without losing a sample; 1000 steps of observations are about 6 MB
+per reader."""
+
 
 def group_namespaces(groups: int) -> list[str]:
     """The namespaces of ``groups`` environment groups: ``/`` for one, else ``/group<i>``."""

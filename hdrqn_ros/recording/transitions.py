@@ -21,7 +21,7 @@ from typing import Iterator
 import numpy as np
 import yaml
 
-from hdrqn_ros.agents.algorithms import ALGO_SPECS
+from hdrqn_ros.agents.specs import ALGO_SPECS
 from hdrqn_ros.agents.policy import StepRecord
 from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.envs.domain import NO_SUBGOAL
@@ -85,7 +85,7 @@ class BagRecorder:
     def add_group(self, namespace: str, topics: list[str]) -> dict[str, int]:
         """Register a group's topics; returns topic name -> connection id."""
         return {name: self.writer.add_topic(wire.group_topic(namespace, name), GROUP_TOPICS[name],
-                                            depth=wire.STEP_QOS.depth if name != wire.POSE else 10)
+                                            depth=wire.STEP_DEPTH if name != wire.POSE else 10)
                 for name in topics}
 
     def write(self, connection: int, cdr: bytes) -> None:

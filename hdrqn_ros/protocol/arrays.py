@@ -1,4 +1,4 @@
-"""Array fields of messages from any source (Cyclone, rclpy, rosbags) as numpy; no DDS here."""
+"""Array fields of messages from any source (rclpy, rosbags) as numpy; no ROS here."""
 from __future__ import annotations
 
 import array

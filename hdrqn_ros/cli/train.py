@@ -14,7 +14,8 @@ def add_train(sub) -> None:
 
     parser = sub.add_parser("train", help="train an agent in-process on N vectorised environments",
                             description="Train hDRQNv1/v2 or a baseline (thesis Algorithm 1). RUN_DIR receives "
-                                        "checkpoints/, train.csv, eval.csv, tb/ (TensorBoard), curves.png and "
+                                        "checkpoints/, train.csv, eval.csv, losses.csv (TD loss, Q, gradient norm), "
+                                        "tb/ (TensorBoard), curves.png and "
                                         "summary.json.")
     parser.add_argument("--algo", choices=ALGOS, help="algorithm (default hdrqn-v2)")
     parser.add_argument("--env", choices=ENV_IDS, metavar="ENV_ID",

@@ -9,7 +9,7 @@ participant ports) every datagram goes to 127.0.0.1 (traced: ``test/test_loopbac
 The range decides what rmw_fastrtps adds to the profile: ``SYSTEM_DEFAULT`` adds nothing;
 ``SUBNET`` (rclpy's default) adds the SPDP multicast announcements (to 239.255.0.1, on
 ``lo``); ``LOCALHOST`` adds a second loopback transport, so every sample is sent twice
-(traced here: 1532 datagrams for 200 messages against 748).
+(docs/security.md).
 
 A user's own Fast DDS profile always wins; a configured interface (``HDRQN_DDS_INTERFACE``)
 replaces loopback by that interface, with multicast discovery on
@@ -37,9 +37,8 @@ class NetworkConfigError(ValueError):
 SOCKET_BUFFER_BYTES = 4 * 1024 * 1024
 """Fast DDS's UDP socket buffers (send and receive), in both profiles. With the system's
 default (about 208 KiB) a batched group's samples (``num_envs`` 16: 93 KB observations,
-186 KB subgoal images, each several 64 KB datagrams) overflow the receive buffer; the lost
-fragments wait for a heartbeat and acting fell to 125 env steps/s (2,158 with 4 MiB).
-The kernel caps the size at ``net.core.rmem_max`` / ``wmem_max``."""
+186 KB subgoal images, each several 64 KB datagrams) overflow the receive buffer and the lost
+fragments wait for a heartbeat (docs/topics.md, "Batched groups", has the figures). The kernel caps the size at ``net.core.rmem_max`` / ``wmem_max``."""
 LOOPBACK = "lo"
 MAX_PARTICIPANTS = 60
 """Unicast discovery ports probed on loopback (participant indices 0..59, the loopback

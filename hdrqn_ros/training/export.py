@@ -1,4 +1,4 @@
-"""Export a checkpoint's acting networks to ONNX for torch-free deployment (issue 20 part B).
+"""Export a checkpoint's acting networks to ONNX for torch-free deployment.
 
 ``export_policy(RUN/checkpoints/last.pt, OUT)`` writes, into ``OUT``:
 
@@ -44,7 +44,7 @@ __all__ = ["OPSET", "ExportError", "ActStep", "export_policy", "export_network",
 OPSET = 17
 VERIFY_TOLERANCE = 1e-4
 """Largest |ONNX Runtime - torch| accepted by the check that ``export_policy`` runs on
-random inputs after writing each model (measured: ~1e-7)."""
+random inputs after writing each model."""
 
 
 class ExportError(ValueError):

@@ -15,12 +15,13 @@ import yaml
 from hdrqn_ros.agents.specs import ALGO_SPECS
 from hdrqn_ros.config import TrainConfig
 from hdrqn_ros.nodes import STACK_DUMP_SIGNAL
+from hdrqn_ros.nodes.executables import entry_point
 from hdrqn_ros.protocol.wire import group_namespaces
 from hdrqn_ros.supervisor import ProcessSpec, python_command
 
-NODE_MODULES = {"environment": "hdrqn_ros.nodes.environment", "critic": "hdrqn_ros.nodes.critic",
-                "meta_controller": "hdrqn_ros.nodes.controllers:main_meta",
-                "sub_controller": "hdrqn_ros.nodes.controllers:main_sub", "learner": "hdrqn_ros.nodes.learner"}
+NODE_MODULES = {name: entry_point(name) for name in ("environment", "critic", "meta_controller", "sub_controller",
+                                                     "learner")}
+"""The training graph's node executables (:mod:`hdrqn_ros.nodes.executables`)."""
 
 
 def view_parameter(cfg: TrainConfig) -> str:

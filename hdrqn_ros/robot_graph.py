@@ -21,13 +21,13 @@ from pathlib import Path
 import yaml
 
 from hdrqn_ros.nodes import STACK_DUMP_SIGNAL
+from hdrqn_ros.nodes.executables import entry_point
 from hdrqn_ros.supervisor import ProcessSpec, python_command
 
 MODES = ("sub-drives", "meta-only")
-NODE_MODULES = {"loopback_robot": "hdrqn_ros.nodes.loopback_robot", "robot_environment":
-                "hdrqn_ros.nodes.robot_environment", "critic": "hdrqn_ros.nodes.critic",
-                "meta_controller": "hdrqn_ros.nodes.controllers:main_meta",
-                "sub_controller": "hdrqn_ros.nodes.controllers:main_sub", "learner": "hdrqn_ros.nodes.learner"}
+NODE_MODULES = {name: entry_point(name) for name in ("loopback_robot", "robot_environment", "critic",
+                                                     "meta_controller", "sub_controller", "learner")}
+"""The robot graph's node executables (:mod:`hdrqn_ros.nodes.executables`)."""
 HOLONOMIC_ACTIONS = Path(__file__).resolve().parents[1] / "config" / "nav2" / "actions_holonomic.yaml"
 """The simulator's moves as velocities (source tree; installed to share/hdrqn_ros/config/nav2)."""
 

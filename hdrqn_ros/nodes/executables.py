@@ -17,6 +17,13 @@ NODES = {"environment": "environment:main", "critic": "critic:main", "meta_contr
 """Executable name -> ``module:function`` in :mod:`hdrqn_ros.nodes`."""
 
 
+def entry_point(executable: str) -> str:
+    """``executable``'s ``module:function`` for :func:`hdrqn_ros.supervisor.python_command`."""
+    if executable not in NODES:
+        raise KeyError(f"no node executable {executable!r}; the executables are {', '.join(NODES)}")
+    return f"{__name__}:{executable}"
+
+
 def run(executable: str) -> int:
     """Import ``executable``'s node module and run its main; exit code 2 when a ROS package it
     needs is not installed."""

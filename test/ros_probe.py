@@ -24,6 +24,10 @@ from hdrqn_ros.nodes.qos import DEFAULT_QOS
 from hdrqn_ros.nodes.ros_messages import interface_class, pack, to_cdr
 
 
+SPIN_STEP_S = 0.05
+"""The one timeout :meth:`RosProbe.spin` gives ``spin_once``."""
+
+
 class ProbeNode(Node):
     """An rclpy node whose publishers and subscriptions take a type name or a class."""
 
@@ -60,13 +64,16 @@ class RosProbe:
         return node
 
     def spin(self, until: Callable[[], bool] | None = None, timeout_s: float | None = None) -> None:
-        """Run callbacks until ``until()`` is true or ``timeout_s`` passed (steps of at most 50 ms)."""
+        """Run callbacks until ``until()`` is true or ``timeout_s`` passed (steps of 50 ms).
+
+        Every step waits the same 50 ms: rclpy's executor keeps its list of ready callbacks
+        only while ``spin_once`` gets the same arguments, and with a new one each call it would
+        run only the first ready subscription, starving those created later under a backlog."""
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while self.context.ok() and not (until is not None and until()):
-            step = 0.05 if deadline is None else min(0.05, deadline - time.monotonic())
-            if step <= 0:
+            if deadline is not None and time.monotonic() >= deadline:
                 return
-            self.executor.spin_once(timeout_sec=step)
+            self.executor.spin_once(timeout_sec=SPIN_STEP_S)
 
     def shutdown(self) -> None:
         """Destroy the nodes and the context; safe to call twice."""

@@ -1,5 +1,5 @@
 """Bounded resources: an oversized image or weights message is rejected before decoding,
-logged, and does not grow the receiving node's memory (real rclpy and Cyclone DDS processes)."""
+logged, and does not grow the receiving node's memory (real rclpy processes)."""
 from __future__ import annotations
 
 import os
@@ -8,13 +8,16 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
-from hdrqn_ros.middleware.port import LATCHED_QOS
-from hdrqn_ros.protocol import wire
-from hdrqn_ros.supervisor import Supervisor
+pytest.importorskip("rclpy", reason="ROS 2 Jazzy (rclpy) is not installed here")
 
-from conftest import node_process, probe_middleware
-from test_graph import domain, wait_for  # noqa: F401  (domain: a fixture)
+from hdrqn_ros.nodes.qos import LATCHED_QOS, STEP_QOS  # noqa: E402
+from hdrqn_ros.protocol import wire  # noqa: E402
+from hdrqn_ros.supervisor import Supervisor  # noqa: E402
+
+from conftest import node_process, ros_probe  # noqa: E402
+from test_graph import domain, wait_for  # noqa: E402, F401  (domain: a fixture)
 
 LIMIT = 1 << 20  # the sub-controller's max_message_bytes in this test
 
@@ -26,20 +29,20 @@ def rss_mib(pid: int) -> float:
     raise AssertionError("no VmRSS")
 
 
-def test_oversized_images_and_weights_are_dropped_without_growing_memory(domain, backend, tmp_path):
+def test_oversized_images_and_weights_are_dropped_without_growing_memory(domain, tmp_path):
     sub = node_process("sub", "sub_controller", "-p", "algo:=dqn", "-p", f"max_message_bytes:={LIMIT}")
     sup = Supervisor([sub], log_dir=tmp_path / "logs", stop_timeout_s=30)
     log = tmp_path / "logs" / "sub.log"
     sup.start()
-    mw = probe_middleware(backend)
+    mw = ros_probe()
     try:
         node = mw.create_node("flooder")
-        obs_pub = node.create_publisher(wire.IMAGE, "/observation", wire.STEP_QOS)
+        obs_pub = node.create_publisher(wire.IMAGE, "/observation", STEP_QOS)
         weights_pub = node.create_publisher(wire.BYTES, wire.WEIGHTS["sub"], LATCHED_QOS)
-        step_pub = node.create_publisher(wire.FLOATS, wire.ENV_STEP, wire.STEP_QOS)
+        step_pub = node.create_publisher(wire.FLOATS, wire.ENV_STEP, STEP_QOS)
         answered: list[int] = []
         node.create_subscription(wire.INTS, wire.ACTION, lambda m: answered.extend(
-            int(r["key"]) for r in wire.read_records(m, wire.ACTION_FIELDS, np.int64)), wire.STEP_QOS)
+            int(r["key"]) for r in wire.read_records(m, wire.ACTION_FIELDS, np.int64)), STEP_QOS)
         for pub in (obs_pub, weights_pub, step_pub):
             mw.spin(until=lambda: pub.get_subscription_count() > 0, timeout_s=60)
             assert pub.get_subscription_count(), "the sub-controller never subscribed"
@@ -85,7 +88,7 @@ BURST = """
 import os
 import subprocess
 import sys
-from hdrqn_ros.nodes.common import return_large_buffers_to_the_os
+from hdrqn_ros.nodes.process import return_large_buffers_to_the_os
 if sys.argv[1] == "node":
     return_large_buffers_to_the_os()
 def rss_mib():

@@ -1,8 +1,8 @@
 """The controller nodes acting from an exported ONNX policy (``policy:=DIR``, issue 20 part B):
 real node processes (environment, critic, meta_controller, sub_controller; no learner,
-epsilon 0) on both middleware backends choose exactly the actions the same graph chooses
-from the torch checkpoint the policy was exported from, the controller processes never
-load torch, and a policy that does not fit the node is refused with exit code 2."""
+epsilon 0) choose exactly the actions the same graph chooses from the torch checkpoint the
+policy was exported from, the controller processes never load torch, and a policy that
+does not fit the node is refused with exit code 2."""
 from __future__ import annotations
 
 import json
@@ -82,7 +82,7 @@ def _decision_ms(rows: list[dict]) -> float:
 
 
 @pytest.mark.parametrize("epsilon", ["0.0", "0.25"], ids=["greedy", "exploring"])
-def test_policy_nodes_act_as_the_checkpoint_nodes_without_torch(domain, backend, tmp_path, exported, epsilon):
+def test_policy_nodes_act_as_the_checkpoint_nodes_without_torch(domain, tmp_path, exported, epsilon):
     """Greedy, and exploring (the same seeds: the same random draws on both paths, and options
     that end at subgoals, so the meta-controller reads the sub-controller's ONNX state)."""
     checkpoint, policy_dir = exported
@@ -113,7 +113,7 @@ def test_policy_nodes_act_as_the_checkpoint_nodes_without_torch(domain, backend,
     report["step_to_action_ms"] = {"onnx": round(_decision_ms(onnx_rows), 2),
                                    "torch": round(_decision_ms(torch_rows), 2)}
     report["steps"] = len(onnx_rows)
-    print(f"\n[deploy nodes {backend} epsilon {epsilon}] {json.dumps(report)}")
+    print(f"\n[deploy nodes epsilon {epsilon}] {json.dumps(report)}")
 
 
 BAD_CASES = {

@@ -1,4 +1,4 @@
-"""A node's DDS traffic stays on loopback by default, on both middleware backends.
+"""A node's DDS traffic stays on loopback by default (rclpy, Fast DDS).
 
 Everything runs inside a network namespace the test makes, ``hdrqn-lo-<pid>``: ``lo`` up
 and one more interface, ``hq<pid>d``, with the private address ``10.213.0.1/24`` and the
@@ -15,16 +15,15 @@ A small helper process in the namespace captures with raw ``AF_PACKET`` sockets
 direction and records the destination address:port of each IPv4 UDP datagram, and prints
 the tally as JSON when its stdin closes (after draining what the kernel queued).
 
-* Positive (rclpy, cyclone, rclpy talker -> cyclone listener): a talker publishing a 44x44
-  ``sensor_msgs/Image`` and a listener that must receive and check N of them run with the
-  backends' defaults. The capture must see zero frames on ``hq<pid>d`` (and none dropped),
-  while it saw the nodes' UDP traffic on ``lo``.
-* Control (the check can fail): the same talker with ``-p dds_interface:=hq<pid>d``: the
-  capture must see its UDP datagrams on ``hq<pid>d`` (discovery multicast to
-  239.255.0.1:7400+250*domain), so a leak would have been caught.
+* Positive: a talker publishing a 44x44 ``sensor_msgs/Image`` and a listener that must
+  receive and check N of them run with our defaults. The capture must see zero frames on
+  ``hq<pid>d`` (and none dropped), while it saw the nodes' UDP traffic on ``lo``.
+* Control (the check can fail): the same talker with ``HDRQN_DDS_INTERFACE=hq<pid>d`` in
+  its environment: the capture must see its UDP datagrams on ``hq<pid>d`` (discovery
+  multicast to 239.255.0.1:7400+250*domain), so a leak would have been caught.
 
 Skips (with the reason) where the namespace cannot be made: not root, no ``ip``, no
-``CAP_SYS_ADMIN``/``CAP_NET_ADMIN``. The rclpy cases skip where rclpy cannot be imported.
+``CAP_SYS_ADMIN``/``CAP_NET_ADMIN``; and (test/conftest.py) where rclpy cannot be imported.
 """
 from __future__ import annotations
 
@@ -41,12 +40,6 @@ from pathlib import Path
 
 import pytest
 
-try:
-    import rclpy  # noqa: F401
-    HAVE_RCLPY = True
-except Exception:  # noqa: BLE001 (any import failure: missing wheels, missing shared libraries)
-    HAVE_RCLPY = False
-
 REPO = Path(__file__).resolve().parents[1]
 SUBNET = "10.213.0"
 WANT = 10
@@ -54,11 +47,10 @@ WANT = 10
 TOPIC = "/hdrqn_loopback/image"
 IMAGE_BYTES = 44 * 44 * 3
 DISCOVERY_GROUP = "239.255.0.1"
-NETWORK_ENV = ("CYCLONEDDS_URI", "FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE",
-               "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_STATIC_PEERS", "ROS_LOCALHOST_ONLY", "HDRQN_DDS_INTERFACE",
-               "RMW_IMPLEMENTATION", "HDRQN_MIDDLEWARE", "ROS_DOMAIN_ID")
-"""Cleared for every node process, so only the backends' own defaults (or the test's
-``dds_interface``) decide where traffic goes."""
+NETWORK_ENV = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE", "ROS_AUTOMATIC_DISCOVERY_RANGE",
+               "ROS_STATIC_PEERS", "ROS_LOCALHOST_ONLY", "HDRQN_DDS_INTERFACE", "RMW_IMPLEMENTATION", "ROS_DOMAIN_ID")
+"""Cleared for every node process, so only our defaults (or the interface the control test
+names) decide where traffic goes."""
 
 CAPTURE = r"""
 import json, select, socket, struct, sys, time
@@ -118,33 +110,45 @@ faulthandler.register(signal.SIGUSR1)  # the test asks for every thread's stack 
 # Ctrl-C stops the talker, even where the test runs with SIGINT ignored (a background job of a
 # non-interactive shell), which Python would otherwise keep
 signal.signal(signal.SIGINT, signal.default_int_handler)
+import os, time
 import numpy as np
-from hdrqn_ros.middleware import open_middleware
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
+from hdrqn_ros.dds import INTERFACE_ENV, apply_rmw_network_defaults
+from hdrqn_ros.nodes.qos import DEFAULT_QOS
+from hdrqn_ros.nodes.ros_messages import ROS_MESSAGES, interface_class
 from hdrqn_ros.protocol import wire
 role, want, limit_s = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
-mw = open_middleware(sys.argv)
-network = getattr(mw, "network", None) or getattr(mw, "interface", None)
+network = apply_rmw_network_defaults(os.environ.get(INTERFACE_ENV) or None)
+rclpy.init(args=sys.argv, signal_handler_options=SignalHandlerOptions.NO)
+node = rclpy.create_node(role)
+executor = SingleThreadedExecutor()
+executor.add_node(node)
 pixels = np.arange(44 * 44 * 3, dtype=np.uint32).astype(np.uint8).reshape(44, 44, 3)
 sent, got = [0], []
 try:
-    node = mw.create_node(role)
     if role == "talker":
-        pub = node.create_publisher(wire.IMAGE, sys.argv[4])
+        pub = node.create_publisher(interface_class(wire.IMAGE), sys.argv[4], DEFAULT_QOS)
         def tick():
             sent[0] += 1
-            pub.publish(wire.make_image(node, sent[0] * 1_000_000, pixels, "camera"))
+            pub.publish(wire.make_image(ROS_MESSAGES, sent[0] * 1_000_000, pixels, "camera"))
         node.create_timer(0.05, tick)
     else:
         def on_image(msg):
             key, image = wire.read_image(msg, 44, 44)
             got.append(key if (image == pixels).all() else -1)
-        node.create_subscription(wire.IMAGE, sys.argv[4], on_image)
-    mw.spin(until=lambda: len(got) >= want if role == "listener" else False, timeout_s=limit_s)
+        node.create_subscription(interface_class(wire.IMAGE), sys.argv[4], on_image, DEFAULT_QOS)
+    end = time.monotonic() + limit_s
+    while time.monotonic() < end and not (role == "listener" and len(got) >= want):
+        executor.spin_once(timeout_sec=0.05)
 except KeyboardInterrupt:  # the test stops the talker with SIGINT
     pass
 finally:
-    mw.shutdown()
-print(json.dumps({"role": role, "backend": mw.backend, "network": network, "sent": sent[0], "got": got}),
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.shutdown()
+print(json.dumps({"role": role, "network": network, "sent": sent[0], "got": got}),
       flush=True)
 """
 
@@ -261,12 +265,12 @@ def summary(stats: dict) -> str:
             f"{stats['udp_frames']} UDP ({stats['udp_bytes']} B) to {udp}")
 
 
-def start_node(net: Netns, backend: str, domain_id: int, role: str, limit_s: float, *ros_args: str) -> subprocess.Popen:
+def start_node(net: Netns, domain_id: int, role: str, limit_s: float,
+               interface: str | None = None) -> subprocess.Popen:
+    """A talker or listener in the namespace; ``interface``: its ``HDRQN_DDS_INTERFACE``."""
     env = {k: v for k, v in os.environ.items() if k not in NETWORK_ENV}
-    env.update(HDRQN_MIDDLEWARE=backend, ROS_DOMAIN_ID=str(domain_id))
+    env.update(ROS_DOMAIN_ID=str(domain_id), **({"HDRQN_DDS_INTERFACE": interface} if interface else {}))
     argv = [sys.executable, "-c", NODE, role, str(WANT), str(limit_s), TOPIC]
-    if ros_args:
-        argv += ["--ros-args", *ros_args]
     return subprocess.Popen(net.exec_argv(*argv), env=env, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
 
@@ -292,27 +296,19 @@ def stop_talker(proc: subprocess.Popen) -> dict:
     return report(proc, timeout=60)
 
 
-def needs(*backends: str):
-    marks = [pytest.mark.skipif(not HAVE_RCLPY, reason="rclpy (ROS 2 Jazzy wheels) not installed")] \
-        if "rclpy" in backends else []
-    return pytest.param(*backends, marks=marks, id="-to-".join(dict.fromkeys(backends)))
+LOOPBACK_ONLY = "rmw_fastrtps_cpp on loopback only"
+"""What :func:`hdrqn_ros.dds.apply_rmw_network_defaults` says of the network by default."""
 
 
-def loopback_description(backend: str) -> str:
-    return "rmw_fastrtps_cpp on loopback only" if backend == "rclpy" else "lo"
-
-
-@pytest.mark.parametrize("talker_backend, listener_backend",
-                         [needs("rclpy", "rclpy"), needs("cyclone", "cyclone"), needs("rclpy", "cyclone")])
-def test_nodes_talk_over_loopback_only(netns, domain, talker_backend, listener_backend):
+def test_nodes_talk_over_loopback_only(netns, domain):
     """A talker and a listener exchange images: zero frames on the namespace's other interface."""
     capture = Capture(netns, [netns.ifname, "lo"])
     listener = talker = None
     try:
         # deadlines for a loaded machine: the listener stops as soon as it has its images, the
         # talker when the test stops it
-        listener = start_node(netns, listener_backend, domain, "listener", 120.0)
-        talker = start_node(netns, talker_backend, domain, "talker", 180.0)
+        listener = start_node(netns, domain, "listener", 120.0)
+        talker = start_node(netns, domain, "talker", 180.0)
         heard = report(listener, timeout=150)
         said = stop_talker(talker)
     finally:
@@ -320,35 +316,32 @@ def test_nodes_talk_over_loopback_only(netns, domain, talker_backend, listener_b
             if proc is not None:
                 kill(proc)
         seen = capture.stop()
-    print(f"{talker_backend} -> {listener_backend} on {netns.kind} {netns.ifname}: sent {said['sent']}, "
+    print(f"talker -> listener on {netns.kind} {netns.ifname}: sent {said['sent']}, "
           f"got {len(heard['got'])}; {netns.ifname}: {summary(seen[netns.ifname])}; lo: {summary(seen['lo'])}")
     leak = seen[netns.ifname]
     assert leak["frames"] == 0, f"traffic left loopback on {netns.ifname}: {summary(leak)}"
     assert leak["drops"] == 0, f"the capture dropped frames on {netns.ifname}: {summary(leak)}"
     assert len(heard["got"]) >= WANT and -1 not in heard["got"], f"listener got {heard['got']}"
     assert heard["got"] == sorted(heard["got"]), "images out of order"
-    assert said["network"] == loopback_description(talker_backend)
-    assert heard["network"] == loopback_description(listener_backend)
-    # the same capture saw the nodes' datagrams on lo (unicast to 127.0.0.1): it was looking.
-    # (Cyclone's one start-up multicast probe, TTL 0 via 127.0.0.1, shows here on lo too.)
+    assert said["network"] == heard["network"] == LOOPBACK_ONLY
+    # the same capture saw the nodes' datagrams on lo (unicast to 127.0.0.1): it was looking
     lo = seen["lo"]
     assert all(dst.startswith(("127.", "239.")) for dst in lo["udp"]), lo["udp"]
     assert lo["udp_bytes"] >= WANT * IMAGE_BYTES, f"the images' bytes were not seen on lo: {summary(lo)}"
 
 
-@pytest.mark.parametrize("backend", [needs("rclpy"), needs("cyclone")])
-def test_control_talker_on_interface_is_captured(netns, domain, backend):
+def test_control_talker_on_interface_is_captured(netns, domain):
     """The same talker told to use the namespace's interface: the capture must see its datagrams."""
     capture = Capture(netns, [netns.ifname])
     talker = None
     try:
-        talker = start_node(netns, backend, domain, "talker", 2.5, "-p", f"dds_interface:={netns.ifname}")
+        talker = start_node(netns, domain, "talker", 2.5, interface=netns.ifname)
         said = report(talker, timeout=120)
     finally:
         if talker is not None:
             kill(talker)
         seen = capture.stop()[netns.ifname]
-    print(f"control {backend} on {netns.kind} {netns.ifname}: {summary(seen)}")
+    print(f"control on {netns.kind} {netns.ifname}: {summary(seen)}")
     assert netns.ifname in said["network"], said
     assert seen["udp_frames"] > 0, f"the capture saw no UDP datagram on {netns.ifname}: {seen}"
     dsts = {dst.rpartition(":")[0] for dst in seen["udp"]}

@@ -9,7 +9,7 @@ lifecycle manager does (transitions by id), and checks what the node does in eac
 - the robot graph with its three deployed nodes managed, brought up and down in Nav2's
   order (configure and activate front to back, deactivate back to front): episodes run
   only while active;
-- ``--managed`` where it cannot be: the Cyclone backend, and a node without a managed mode.
+- ``--managed`` where it cannot be: a node without a managed mode.
 """
 from __future__ import annotations
 
@@ -20,21 +20,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import NO_RCLPY
-from test_graph import ENV, domain, read_jsonl  # noqa: F401  (domain: a fixture)
-from test_robot_nodes import checkpoint, start  # noqa: F401  (checkpoint: a fixture)
+pytest.importorskip("rclpy", reason="ROS 2 Jazzy (rclpy) is not installed here")
 
-from hdrqn_ros.middleware import LATCHED_QOS, open_middleware
-from hdrqn_ros.middleware.rclpy_backend import rclpy_available
-from hdrqn_ros.nodes import nav
-from hdrqn_ros.robot_graph import NODE_MODULES
-from hdrqn_ros.supervisor import python_command
+from lifecycle_msgs.msg import Transition  # noqa: E402
+from lifecycle_msgs.srv import ChangeState, GetState  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
 
-if rclpy_available():  # the lifecycle client's interfaces
-    from lifecycle_msgs.msg import Transition
-    from lifecycle_msgs.srv import ChangeState, GetState
-    from rclpy.parameter import Parameter
-    from rclpy.parameter_client import AsyncParameterClient
+from hdrqn_ros.nodes import nav  # noqa: E402
+from hdrqn_ros.nodes.qos import LATCHED_QOS  # noqa: E402
+from hdrqn_ros.robot_graph import NODE_MODULES  # noqa: E402
+from hdrqn_ros.supervisor import python_command  # noqa: E402
+
+from ros_probe import RosProbe  # noqa: E402
+from test_graph import ENV, domain, read_jsonl  # noqa: E402, F401  (domain: a fixture)
+from test_robot_nodes import checkpoint, start  # noqa: E402, F401  (checkpoint: a fixture)
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 ZERO = (0.0, 0.0, 0.0)
@@ -45,16 +45,15 @@ class LifecycleClient:
     and the listener of cmd_vel, /diagnostics and env_step."""
 
     def __init__(self):
-        self.mw = open_middleware(["lifecycle_client"], "rclpy")
-        self.port = self.mw.create_node("lifecycle_client")
-        self.node = self.port._node
+        self.mw = RosProbe(["lifecycle_client"])
+        self.node = self.mw.create_node("lifecycle_client")
         self.cmd_vel: list[tuple[float, float, float]] = []
         self.diagnostics: dict[str, object] = {}
-        self.port.create_subscription(nav.TWIST, "/cmd_vel", lambda m: self.cmd_vel.append(
+        self.node.create_subscription(nav.TWIST, "/cmd_vel", lambda m: self.cmd_vel.append(
             (m.linear.x, m.linear.y, m.angular.z)))
-        self.port.create_subscription("diagnostic_msgs/msg/DiagnosticArray", "/diagnostics",
+        self.node.create_subscription("diagnostic_msgs/msg/DiagnosticArray", "/diagnostics",
                                       lambda m: self.diagnostics.update({s.name: s for s in m.status}))
-        self.costmap_pub = self.port.create_publisher(nav.OCCUPANCY_GRID, "/local_costmap/costmap", LATCHED_QOS)
+        self.costmap_pub = self.node.create_publisher(nav.OCCUPANCY_GRID, "/local_costmap/costmap", LATCHED_QOS)
         self.clients: dict[str, tuple] = {}
 
     def spin(self, seconds: float) -> None:
@@ -103,12 +102,12 @@ class LifecycleClient:
         return future.result().descriptors[0]
 
     def publish_costmap(self) -> None:
-        msg = self.port.msg
+        msg = self.node.msg
         grid = msg(nav.OCCUPANCY_GRID)()
         grid.header.frame_id = "odom"
         grid.info.resolution, grid.info.width, grid.info.height = 0.25, 20, 20
         grid.info.origin.position.x = grid.info.origin.position.y = -2.5
-        grid.data = self.port.pack(np.zeros(400, np.int8))
+        grid.data = self.node.pack(np.zeros(400, np.int8))
         self.costmap_pub.publish(grid)
 
     def status(self, node: str) -> str:
@@ -121,7 +120,6 @@ class LifecycleClient:
 
 @pytest.fixture
 def client(domain, monkeypatch, tmp_path):
-    monkeypatch.setenv("HDRQN_MIDDLEWARE", "rclpy")
     monkeypatch.setenv("ROS_LOG_DIR", str(tmp_path / "ros_log"))
     c = LifecycleClient()
     yield c
@@ -145,7 +143,6 @@ def stop(proc: subprocess.Popen) -> int:
     return proc.wait()
 
 
-@NO_RCLPY
 def test_sub_controller_every_transition(client, tmp_path):
     log = tmp_path / "sub.log"
     proc = node_process("sub_controller", "algo:=dqn", f"env:={ENV}", "observation_source:=costmap",
@@ -220,7 +217,6 @@ MANAGED = ("robot_environment", "meta_controller", "sub_controller")
 """The deployed nodes, in the order a lifecycle manager's ``node_names`` lists them."""
 
 
-@NO_RCLPY
 def test_robot_graph_managed_in_nav2_order(client, tmp_path, checkpoint):  # noqa: F811
     sup, log = start(tmp_path, checkpoint, "sub-drives", episodes=50, managed=MANAGED)
     try:
@@ -253,11 +249,7 @@ def test_robot_graph_managed_in_nav2_order(client, tmp_path, checkpoint):  # noq
     assert all(codes[n] == 0 for n in MANAGED), codes
 
 
-def test_managed_needs_rclpy_and_a_managed_node(tmp_path, domain, monkeypatch):  # noqa: F811
-    monkeypatch.setenv("HDRQN_MIDDLEWARE", "cyclone")
-    out = subprocess.run(python_command(NODE_MODULES["sub_controller"]) + ["--managed"],
-                         capture_output=True, text=True, timeout=120)
-    assert out.returncode == 2 and "managed" in out.stderr and "rclpy" in out.stderr, out.stderr
+def test_managed_needs_a_managed_node(tmp_path, domain):  # noqa: F811
     out = subprocess.run(python_command(NODE_MODULES["critic"]) + ["--managed"],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "no managed (lifecycle) mode" in out.stderr, out.stderr

@@ -20,20 +20,20 @@ Addresses: loopback range only, ``127.213.0.1`` (learner), ``.2`` (host a), ``.3
 on ``127.213.0.0/24``. Linux treats 127/8 as "martian" on anything but ``lo``, so each
 namespace (and only it) gets ``net.ipv4.conf.all.route_localnet=1``, and its ``lo`` keeps
 only ``127.0.0.1/32`` instead of ``127.0.0.1/8`` (else the local route ``127.0.0.0/8 dev
-lo`` would swallow the other hosts' addresses). There is no default route anywhere. Cyclone
-DDS accepts these addresses on a non-loopback interface as they are.
+lo`` would swallow the other hosts' addresses). There is no default route anywhere.
 
-Discovery: every process runs with ``dds_interface`` set to its host's interface (the
-bridge or the veth), which makes the Cyclone backend use that interface with multicast
-allowed (:func:`hdrqn_ros.middleware.cyclone.cyclone_config`): SPDP discovery goes out as
-multicast on the virtual links, the bridge floods it to the other hosts, and user data
-then flows unicast/multicast between the 127.213.0.x addresses. No peer list is needed.
+Discovery: every process runs with ``HDRQN_DDS_INTERFACE`` set to its host's interface (the
+bridge or the veth) in its environment, which makes Fast DDS use only that interface,
+discovering by multicast on it (:func:`hdrqn_ros.dds.fastdds_interface_profile`): SPDP
+discovery goes out as multicast on the virtual links, the bridge floods it to the other
+hosts, and user data then flows unicast/multicast between the 127.213.0.x addresses. No
+peer list is needed.
 
 The fault: mid-run the learner host takes host a's bridge port down (``ip link set ...
 down``: host a's veth loses carrier, host a's own processes keep their addresses and keep
 talking to each other). The learner must keep training on group1's data while group0 is
 cut off, and group0 must rejoin once the port is up again. Two cut lengths: shorter than
-Cyclone's participant lease (the DDS session survives and reliable delivery resends what the
+Fast DDS's participant lease (the DDS session survives and reliable delivery resends what the
 cut swallowed: nothing may be lost) and longer (both sides drop each other, rediscover each
 other by SPDP multicast after the restore, and the steps sent in between are lost).
 At the end every transition the learner assembled, from both groups, must be the step its
@@ -57,6 +57,7 @@ from pathlib import Path
 import pytest
 
 from hdrqn_ros.config import build_config
+from hdrqn_ros.dds import INTERFACE_ENV
 from hdrqn_ros.graph import graph_processes
 from hdrqn_ros.supervisor import Supervisor
 
@@ -64,12 +65,12 @@ from test_graph import (ENV, check_env_log_replays_in_process, check_transitions
                         domain, read_jsonl)
 
 SUBNET = "127.213.0"
-LEASE_S = 10.0
-"""Cyclone DDS's default participant lease (``Discovery/LeaseDuration``): a peer not heard
-from for this long is dropped, with what was still unacknowledged for it."""
+LEASE_S = 20.0
+"""Fast DDS's default participant lease (``leaseDuration``, announced every 3 s): a peer not
+heard from for this long is dropped, with what was still unacknowledged for it."""
 WITHIN_LEASE_S = 6.0
 """A cut the DDS session survives: on restore, reliable delivery resends what was lost."""
-BEYOND_LEASE_S = 15.0
+BEYOND_LEASE_S = 25.0
 """A cut that ends the DDS session: on restore the participants discover each other anew
 and what was sent in between is gone (the learner must restart at an episode boundary)."""
 SEED = 3
@@ -234,10 +235,11 @@ def start_multihost_graph(tmp_path: Path, net: LoopbackHosts, lost_after_s: floa
     for spec in graph_processes(cfg, params, 2, respawn=False):
         group = spec.name.split("/")[0]
         host = net.learner if spec.name == "learner" else net.actors[int(group.removeprefix("group"))]
-        argv = [*spec.argv, "-p", f"dds_interface:={host.ifname}"]
+        argv = list(spec.argv)
         if spec.name.endswith("/environment"):
             argv += ["-p", f"step_log:={tmp_path / f'env_steps_{group}.jsonl'}"]
-        specs.append(replace(spec, argv=["ip", "netns", "exec", host.netns, *argv]))
+        specs.append(replace(spec, argv=["ip", "netns", "exec", host.netns, *argv],
+                             env={**(spec.env or {}), INTERFACE_ENV: host.ifname}))
     # the learner saves a checkpoint when stopped: give it time on a busy machine
     sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=30)
     sup.start()
@@ -246,7 +248,7 @@ def start_multihost_graph(tmp_path: Path, net: LoopbackHosts, lost_after_s: floa
 
 @pytest.mark.flaky(reruns=1)  # timing-sensitive by nature: a link cut of a fixed length against DDS's lease
 @pytest.mark.parametrize("cut_s", [WITHIN_LEASE_S, BEYOND_LEASE_S], ids=["within-lease", "beyond-lease"])
-def test_actor_group_cut_off_and_restored_rejoins(domain, backend, hosts, tmp_path, cut_s):
+def test_actor_group_cut_off_and_restored_rejoins(domain, hosts, tmp_path, cut_s):
     """Group0 (host a) and group1 (host b) feed the learner; host a's link goes down for
     ``cut_s`` s: the learner keeps training on group1 and group0 rejoins when it is back."""
     a, b = "/group0", "/group1"

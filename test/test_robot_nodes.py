@@ -22,16 +22,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hdrqn_ros.middleware import LATCHED_QOS, QoS, open_middleware
-from hdrqn_ros.nodes import nav
-from hdrqn_ros.protocol import wire
-from hdrqn_ros.robot_graph import RobotRun, robot_processes, write_params
-from hdrqn_ros.supervisor import ProcessSpec, Supervisor
-from hdrqn_ros.training.learner import load_trained_agent, play
+pytest.importorskip("rclpy", reason="ROS 2 Jazzy (rclpy) is not installed here")
 
-from conftest import NO_RCLPY
-from test_graph import ENV, domain, read_jsonl, wait_for  # noqa: F401  (domain: a fixture)
-from test_onnx_export import _make_checkpoint
+from hdrqn_ros.nodes import nav  # noqa: E402
+from hdrqn_ros.nodes.qos import LATCHED_QOS, STEP_QOS, keep_last  # noqa: E402
+from hdrqn_ros.protocol import wire  # noqa: E402
+from hdrqn_ros.robot_graph import RobotRun, robot_processes, write_params  # noqa: E402
+from hdrqn_ros.supervisor import ProcessSpec, Supervisor, python_command  # noqa: E402
+from hdrqn_ros.training.learner import load_trained_agent, play  # noqa: E402
+
+from ros_probe import RosProbe  # noqa: E402
+from test_graph import ENV, domain, read_jsonl, wait_for  # noqa: E402, F401  (domain: a fixture)
+from test_onnx_export import _make_checkpoint  # noqa: E402
 
 SEED = 2
 EPISODES = 3
@@ -49,8 +51,8 @@ class Probe:
     """The test's own node on the robot's standard topics: every cmd_vel, goal_pose, odometry
     twist, subgoal and env_step it hears, in order."""
 
-    def __init__(self, backend: str | None = None):
-        self.mw = open_middleware(["probe"], backend)
+    def __init__(self):
+        self.mw = RosProbe(["probe"])
         node = self.node = self.mw.create_node("probe")
         self.cmd_vel: list[tuple[float, float, float]] = []
         self.goal_poses: list[tuple[float, float]] = []
@@ -65,16 +67,16 @@ class Probe:
                                  lambda m: setattr(self, "markers", m))
         # the probe counts every command: a history deep enough for a test thread that falls
         # behind on a loaded machine (ROS's default 10 lost 4 of 150 in a stress run)
-        counted = QoS(depth=1000)
+        counted = keep_last(1000)
         node.create_subscription(nav.TWIST, "/cmd_vel", lambda m: self.cmd_vel.append(
             (m.linear.x, m.linear.y, m.angular.z)), counted)
         node.create_subscription(nav.POSE_STAMPED, "/goal_pose", lambda m: self.goal_poses.append(
             (m.pose.position.x, m.pose.position.y)), counted)
         node.create_subscription(nav.POSE_TYPES["odometry"], "/odom", lambda m: self.odom_twist.append(
             (m.twist.twist.linear.x, m.twist.twist.linear.y, m.twist.twist.angular.z)))
-        node.create_subscription(wire.INTS, "/subgoal", self._on_subgoal, wire.STEP_QOS)
+        node.create_subscription(wire.INTS, "/subgoal", self._on_subgoal, STEP_QOS)
         node.create_subscription(wire.FLOATS, "/env_step", lambda m: self.steps.append(
-            wire.read_record(m, wire.STEP_FIELDS)), wire.STEP_QOS)
+            wire.read_record(m, wire.STEP_FIELDS)), STEP_QOS)
 
     def _on_subgoal(self, msg) -> None:
         self.new_options += int(wire.read_records(msg, wire.SUBGOAL_FIELDS, np.int64)[0]["new_option"])
@@ -113,11 +115,8 @@ def finished(sup: Supervisor):
     return lambda: sup.returncodes["robot_environment"] is not None
 
 
-@pytest.mark.parametrize("backend", [pytest.param("rclpy", marks=NO_RCLPY), "cyclone"])
-def test_sub_drives_the_simulators_episodes_with_one_cmd_vel_per_step(tmp_path, checkpoint, backend, domain,
-                                                                     monkeypatch):
-    monkeypatch.setenv("HDRQN_MIDDLEWARE", backend)
-    probe = Probe(backend)
+def test_sub_drives_the_simulators_episodes_with_one_cmd_vel_per_step(tmp_path, checkpoint, domain):
+    probe = Probe()
     sup, log = start(tmp_path, checkpoint, "sub-drives")
     try:
         def acting() -> bool:
@@ -154,17 +153,14 @@ def test_sub_drives_the_simulators_episodes_with_one_cmd_vel_per_step(tmp_path, 
     assert any(m.ns == "hdrqn_subgoal" and m.text.startswith("subgoal: ") for m in markers.markers)
 
 
-@NO_RCLPY
 @pytest.mark.parametrize("cut_short", [False, True], ids=["navigator-arrives", "options-time-out"])
-def test_meta_only_sends_one_goal_pose_per_option_and_no_cmd_vel(tmp_path, checkpoint, domain, monkeypatch,
-                                                                 cut_short):
+def test_meta_only_sends_one_goal_pose_per_option_and_no_cmd_vel(tmp_path, checkpoint, domain, cut_short):
     """``options-time-out``: a navigator too slow to get anywhere and an ``option_timeout``
     below the step period: every option ends at its next step, away from the places. hDRQNv2's
     meta-controller then needs the sub-controller's LSTM state for a step that is no decision
     point; before, it waited for it for ever (the robot stood still, seen once in a stress run
     where a loaded start-up let the clock run free past the 12 s timeout)."""
-    monkeypatch.setenv("HDRQN_MIDDLEWARE", "rclpy")
-    probe = Probe("rclpy")
+    probe = Probe()
     slow = {"critic": {"option_timeout": 1.0}, "loopback_robot": {"nav_speed": 0.01}} if cut_short else \
         {"critic": {"option_timeout": 12.0}}
     sup, log = start(tmp_path, checkpoint, "meta-only", **slow)
@@ -186,13 +182,11 @@ def test_meta_only_sends_one_goal_pose_per_option_and_no_cmd_vel(tmp_path, check
         assert any(e["visits"] for e in episodes), "the navigator reached the places chosen"
 
 
-@NO_RCLPY
 @pytest.mark.parametrize("stop", ["sigterm", "stale"])
-def test_stop_means_a_zero_command(tmp_path, checkpoint, domain, monkeypatch, stop):
+def test_stop_means_a_zero_command(tmp_path, checkpoint, domain, stop):
     """The sub-controller stopped (SIGTERM), or its observation stale (the robot environment
     killed): the last cmd_vel is the zero one and the robot stands still."""
-    monkeypatch.setenv("HDRQN_MIDDLEWARE", "rclpy")
-    probe = Probe("rclpy")
+    probe = Probe()
     sup, log = start(tmp_path, checkpoint, "sub-drives", episodes=50, loopback_robot={"lockstep_timeout": 2.0},
                      sub_controller={"stale_after_s": 5.0})
     try:
@@ -214,7 +208,7 @@ def test_stop_means_a_zero_command(tmp_path, checkpoint, domain, monkeypatch, st
 def run_node(tmp_path: Path, name: str, *params: str, timeout: float = 120) -> tuple[int, str]:
     from hdrqn_ros.robot_graph import NODE_MODULES
 
-    argv = [sys.executable, "-m", NODE_MODULES[name], "--ros-args"]
+    argv = python_command(NODE_MODULES[name]) + ["--ros-args"]
     for param in params:
         argv += ["-p", param]
     sup = Supervisor([ProcessSpec(name, argv)], log_dir=tmp_path)
@@ -239,26 +233,18 @@ def test_robot_environment_startup_mistakes_exit_2(tmp_path, domain, params, pro
     assert code == 2 and problem in out, out
 
 
-def test_cyclone_has_no_episode_services_and_says_so(tmp_path, domain, monkeypatch):
-    monkeypatch.setenv("HDRQN_MIDDLEWARE", "cyclone")
-    code, out = run_node(tmp_path, "robot_environment", "subgoal_poses_topic:=places", "autostart:=false")
-    assert code == 2 and "Cyclone DDS backend offers no ROS 2 services" in out and "start_episode" in out, out
-
-
-@NO_RCLPY
-def test_bad_messages_are_logged_and_skipped(tmp_path, domain, monkeypatch):
+def test_bad_messages_are_logged_and_skipped(tmp_path, domain):
     """A pose in another frame, a non-finite pose and a costmap smaller than the view are
     refused with a reason; the node goes on and starts an episode from good inputs."""
-    monkeypatch.setenv("HDRQN_MIDDLEWARE", "rclpy")
     table = tmp_path / "places.yaml"
     table.write_text("frame_id: map\nsubgoals: [{x: 1.0, y: 1.0}, {x: 2.0, y: 1.0}]\n")
     sup = Supervisor([ProcessSpec("robot_environment", [sys.executable, "-m", "hdrqn_ros.nodes.robot_environment",
                                                         "--ros-args", "-p", f"subgoal_table:={table}",
                                                         "-p", "costmap_topic:=/costmap"])], log_dir=tmp_path)
-    mw = open_middleware(["probe"], "rclpy")
+    mw = RosProbe(["probe"])
     node = mw.create_node("probe")
     steps = []
-    node.create_subscription(wire.FLOATS, "/env_step", steps.append, wire.STEP_QOS)
+    node.create_subscription(wire.FLOATS, "/env_step", steps.append, STEP_QOS)
     pose_pub = node.create_publisher(nav.POSE_TYPES["odometry"], "/odom")
     map_pub = node.create_publisher(nav.OCCUPANCY_GRID, "/costmap", LATCHED_QOS)
     log = tmp_path / "robot_environment.log"
@@ -305,16 +291,14 @@ def test_bad_messages_are_logged_and_skipped(tmp_path, domain, monkeypatch):
     assert first["t"] == 0 and first["episode"] == 0
 
 
-@NO_RCLPY
-def test_episodes_start_and_stop_on_request(tmp_path, checkpoint, domain, monkeypatch):
+def test_episodes_start_and_stop_on_request(tmp_path, checkpoint, domain):
     """``autostart`` off: nothing steps until ``~/start_episode``; ``~/stop_episode`` ends the
     running episode (truncated) at its next step, and no other starts."""
     from std_srvs.srv import Trigger
 
-    monkeypatch.setenv("HDRQN_MIDDLEWARE", "rclpy")
-    probe = Probe("rclpy")
+    probe = Probe()
     sup, log = start(tmp_path, checkpoint, "sub-drives", episodes=5, robot_environment={"autostart": False})
-    clients = {name: probe.node._node.create_client(Trigger, f"/robot_environment/{name}")
+    clients = {name: probe.node.create_client(Trigger, f"/robot_environment/{name}")
                for name in ("start_episode", "stop_episode")}
 
     def call(name: str):
@@ -339,15 +323,13 @@ def test_episodes_start_and_stop_on_request(tmp_path, checkpoint, domain, monkey
     assert read_jsonl(log)[0]["steps"] < 50
 
 
-@NO_RCLPY
-def test_param_set_on_the_robot_nodes(tmp_path, checkpoint, domain, monkeypatch):
+def test_param_set_on_the_robot_nodes(tmp_path, checkpoint, domain):
     """``ros2 param set`` on the robot's nodes: a new ``step_period`` holds from the next step
     (the step keys are simulated ns); read-only and out-of-range values are refused with a reason."""
     from rclpy.parameter import Parameter
     from rclpy.parameter_client import AsyncParameterClient
 
-    monkeypatch.setenv("HDRQN_MIDDLEWARE", "rclpy")
-    probe = Probe("rclpy")
+    probe = Probe()
     sup, _ = start(tmp_path, checkpoint, "sub-drives", episodes=50)
 
     def result(future, what: str):
@@ -355,8 +337,8 @@ def test_param_set_on_the_robot_nodes(tmp_path, checkpoint, domain, monkeypatch)
         return future.result()
 
     try:
-        env = AsyncParameterClient(probe.node._node, "/robot_environment")
-        robot = AsyncParameterClient(probe.node._node, "/loopback_robot")
+        env = AsyncParameterClient(probe.node, "/robot_environment")
+        robot = AsyncParameterClient(probe.node, "/loopback_robot")
         probe.until(lambda: env.services_are_ready() and robot.services_are_ready(), 120, "parameter services", sup)
         probe.until(lambda: len(probe.steps) >= 3, 120, "the robot stepping", sup)
         for client, name, value, words in ((env, "pose_topic", "/elsewhere", "read-only"),
@@ -381,13 +363,11 @@ def test_param_set_on_the_robot_nodes(tmp_path, checkpoint, domain, monkeypatch)
 SHIPPED = Path(__file__).resolve().parents[1] / "policies" / "hdrqn-v2_gridworld-2goals"
 
 
-@NO_RCLPY
-def test_the_shipped_trained_policy_visits_the_goals_in_order(tmp_path, domain, monkeypatch):
+def test_the_shipped_trained_policy_visits_the_goals_in_order(tmp_path, domain):
     """The trained hDRQNv2 the package ships (ONNX, no torch in the controllers) drives the
     loopback robot through cmd_vel: on the seed-0 layouts it visits blue then green in each
     episode, in the steps the simulator takes with the checkpoint it was exported from
     (4, 8, 9: the lockstep robot is deterministic)."""
-    monkeypatch.setenv("HDRQN_MIDDLEWARE", "rclpy")
     log = tmp_path / "episodes.jsonl"
     run = RobotRun(algo="hdrqn-v2", env=ENV, view="5", policy=str(SHIPPED), episodes=3, seed=0,
                    real_time_factor=40.0, episode_log=str(log))
@@ -404,11 +384,9 @@ def test_the_shipped_trained_policy_visits_the_goals_in_order(tmp_path, domain, 
                                                                                    ([0, 1], True, 9)]
 
 
-@NO_RCLPY
-def test_robot_episodes_recorded_then_trained_on_offline(tmp_path, domain, monkeypatch):
+def test_robot_episodes_recorded_then_trained_on_offline(tmp_path, domain):
     """``hdrqn robot --record``: a learner node records every robot episode to a bag, which
     ``hdrqn train --from-bag`` trains on."""
-    monkeypatch.setenv("HDRQN_MIDDLEWARE", "rclpy")
     bag, out = tmp_path / "bag", tmp_path / "robot"
 
     def hdrqn(*argv: str) -> subprocess.CompletedProcess:

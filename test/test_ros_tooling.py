@@ -3,9 +3,9 @@
 node loggers on real rclpy (severities, throttled warnings). Skipped where rclpy cannot be
 imported.
 
-The test process's own rclpy context comes from :class:`RclpyMiddleware`, which applies
-the loopback-only Fast DDS defaults before ``rclpy.init``; its rclpy node
-(``RclpyNode._node``) is used for the rclpy APIs the ``ros2`` CLI uses.
+The test process's own rclpy context is a :class:`ros_probe.RosProbe` (the loopback-only
+Fast DDS defaults applied before ``rclpy.init``); its probe node, a plain rclpy node, is
+used for the rclpy APIs the ``ros2`` CLI uses.
 """
 from __future__ import annotations
 
@@ -28,31 +28,40 @@ from rclpy.parameter import Parameter, parameter_value_to_python  # noqa: E402
 from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 
-from hdrqn_ros.middleware.rclpy_backend import RclpyMiddleware, RclpyNode  # noqa: E402
-from hdrqn_ros.nodes import controllers, critic, environment, learner, nav  # noqa: E402
-from hdrqn_ros.nodes.common import ENV_DEFAULTS  # noqa: E402
+from hdrqn_ros.nodes import critic, environment, learner, meta_controller, sub_controller  # noqa: E402
+from hdrqn_ros.nodes.controller_node import CONTROLLER_PARAMETERS  # noqa: E402
+from hdrqn_ros.nodes.graph_parameters import ENV_PARAMETERS  # noqa: E402
+from hdrqn_ros.nodes.nav_adapters import GOAL_PARAMETERS, VELOCITY_PARAMETERS  # noqa: E402
+from hdrqn_ros.nodes.node_logger import python_logger  # noqa: E402
+from hdrqn_ros.nodes.qos import STEP_QOS  # noqa: E402
 from hdrqn_ros.protocol import wire  # noqa: E402
 from hdrqn_ros.supervisor import Supervisor  # noqa: E402
 from hdrqn_ros.throttle import BURST  # noqa: E402
 
+from ros_probe import ProbeNode, RosProbe  # noqa: E402
 from test_graph import CONFIG, ENV, _domains, start_graph  # noqa: E402
 
-EPISODES = 50
+EPISODES = 100_000
 """The learner's ``episodes`` (not its default 1000); far more than the module's run time
 allows, so every node stays up while it is probed."""
 NODES = ("environment", "critic", "meta_controller", "sub_controller", "learner")
 DECLARED = {
     "environment": environment.PARAMETERS,
     "critic": critic.PARAMETERS,
-    "meta_controller": {**controllers.CONTROLLER_PARAMETERS, **nav.META_PARAMETERS},
-    "sub_controller": {**controllers.CONTROLLER_PARAMETERS, **nav.SUB_PARAMETERS, "subgoal_table": ""},
+    "meta_controller": meta_controller.PARAMETERS,
+    "sub_controller": sub_controller.PARAMETERS,
     "learner": learner.PARAMETERS,
 }
-"""What each node declares (``declare_parameters`` in its module)."""
+"""What each node declares (its module's ``PARAMETERS``, name -> ``Param``)."""
+MANAGED = {"meta_controller", "sub_controller"}
+"""Lifecycle nodes: a parameter read at configure is writable in the descriptor and refused
+by the node while it is configured."""
 RCLPY_PARAMETERS = {"use_sim_time", "start_type_description_service"}
 """Parameters every rclpy node declares itself (Jazzy)."""
 RCLPY_TOPICS = {"/rosout": "rcl_interfaces/msg/Log", "/parameter_events": "rcl_interfaces/msg/ParameterEvent"}
 """Topics every rclpy node publishes."""
+LIFECYCLE_TOPIC = ("transition_event", "lifecycle_msgs/msg/TransitionEvent")
+"""The topic every lifecycle node (:data:`MANAGED`) publishes in its own namespace (``~/transition_event``)."""
 ROSOUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 """What a ``/rosout`` subscriber asks for: rcl's rosout publisher profile
@@ -88,8 +97,9 @@ def nav2_topics() -> dict[str, dict[str, Any]]:
     "Notes" of docs/topics.md): ``goal_pose`` and ``cmd_vel`` at their default names."""
     stamped = yaml.safe_load((CONFIG / "nav2" / "actions.yaml").read_text()).get("stamped", False)
     twist = "geometry_msgs/msg/TwistStamped" if stamped else "geometry_msgs/msg/Twist"
-    return {"/" + nav.META_PARAMETERS["goal_pose_topic"]: {"type": wire.POSE_STAMPED, "publisher": "meta_controller"},
-            "/" + nav.SUB_PARAMETERS["cmd_vel_topic"]: {"type": twist, "publisher": "sub_controller"}}
+    return {"/" + GOAL_PARAMETERS["goal_pose_topic"].default: {"type": wire.POSE_STAMPED,
+                                                                "publisher": "meta_controller"},
+            "/" + VELOCITY_PARAMETERS["cmd_vel_topic"].default: {"type": twist, "publisher": "sub_controller"}}
 
 
 def eventually(check: Callable[[], str | None], spin: Callable[[float], None], timeout: float, what: str,
@@ -113,17 +123,12 @@ def eventually(check: Callable[[], str | None], spin: Callable[[float], None], t
 class Graph:
     """The running graph and the test process's probe node (rclpy)."""
 
-    mw: RclpyMiddleware
-    probe: RclpyNode
+    mw: RosProbe
+    node: ProbeNode
     sup: Supervisor
     tmp: Path
     rosout: list = field(default_factory=list)  # every Log received on /rosout
     steps: list = field(default_factory=list)  # env_steps from /env_step
-
-    @property
-    def node(self):
-        """The probe's rclpy node, for the rclpy graph and parameter APIs."""
-        return self.probe._node
 
     def spin(self, timeout_s: float) -> None:
         self.mw.spin(timeout_s=timeout_s)
@@ -141,17 +146,15 @@ def graph(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("ros_tooling")
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("ROS_DOMAIN_ID", str(next(_domains) % 200 + 20))
-        mp.delenv("CYCLONEDDS_URI", raising=False)
-        mp.setenv("HDRQN_MIDDLEWARE", "rclpy")  # inherited by the node processes
         mp.setenv("ROS_LOG_DIR", str(tmp / "ros_log"))  # rcl's log files: here, not in ~/.ros/log
-        mw = RclpyMiddleware(["probe"])  # loopback defaults before rclpy.init
+        mw = RosProbe(["probe"])  # loopback defaults before rclpy.init
         sup = None
         try:
             probe = mw.create_node("probe")
             g = Graph(mw, probe, None, tmp)  # type: ignore[arg-type]
-            probe._node.create_subscription(Log, "/rosout", g.rosout.append, ROSOUT_QOS)
+            probe.create_subscription(Log, "/rosout", g.rosout.append, ROSOUT_QOS)
             steps = probe.create_subscription(wire.FLOATS, "/env_step",
-                                              lambda m: g.steps.append(wire.read_record(m, wire.STEP_FIELDS)), wire.STEP_QOS)
+                                              lambda m: g.steps.append(wire.read_record(m, wire.STEP_FIELDS)), STEP_QOS)
             sup = g.sup = start_graph(tmp, episodes=EPISODES)
 
             def running() -> str | None:
@@ -186,12 +189,14 @@ def started_parameters(tmp: Path) -> dict[str, dict[str, Any]]:
 
 def test_declared_parameter_dicts_exist():
     """The names this module compares against are the nodes' own declarations."""
-    assert {"algo", "env", "view", "seed"} <= set(ENV_DEFAULTS)
+    assert {"algo", "env", "view", "seed"} <= set(ENV_PARAMETERS)
     assert {"wait_for_learner", "step_period", "publish_clock"} <= set(environment.PARAMETERS)
     assert {"episodes", "run_dir", "groups", "config"} <= set(learner.PARAMETERS)
-    assert {"epsilon", "checkpoint", "meta_state"} <= set(controllers.CONTROLLER_PARAMETERS)
-    assert controllers.MetaControllerNode.nav_parameters == nav.META_PARAMETERS
-    assert controllers.SubControllerNode.nav_parameters == {**nav.SUB_PARAMETERS, "subgoal_table": ""}
+    assert {"epsilon", "checkpoint", "meta_state"} <= set(CONTROLLER_PARAMETERS)
+    for node in NODES:
+        assert set(ENV_PARAMETERS) <= set(DECLARED[node]), node
+    assert {"goal_pose_topic", "subgoal_poses_topic"} <= set(meta_controller.PARAMETERS) - set(sub_controller.PARAMETERS)
+    assert {"cmd_vel_topic", "action_table"} <= set(sub_controller.PARAMETERS) - set(meta_controller.PARAMETERS)
 
 
 def test_parameters_through_the_parameter_services(graph):
@@ -211,11 +216,11 @@ def test_parameters_through_the_parameter_services(graph):
         ordered = sorted(declared)
         reply = graph.result(client.get_parameters(ordered), 10, f"get_parameters of /{node}")
         values = got[node] = {name: parameter_value_to_python(v) for name, v in zip(ordered, reply.values)}
-        expected = {**DECLARED[node], **started[node]}
+        expected = {**{name: param.default for name, param in DECLARED[node].items()}, **started[node]}
         assert values == {name: expected[name] for name in ordered}, f"/{node}"
         # the values themselves, not only "what params.yaml says"
         assert (values["algo"], values["env"], values["view"], values["seed"]) == ("hdrqn-v2", ENV, "5", 3), node
-    assert got["learner"]["episodes"] == EPISODES != learner.PARAMETERS["episodes"]
+    assert got["learner"]["episodes"] == EPISODES != learner.PARAMETERS["episodes"].default
     assert (got["learner"]["run_dir"], got["learner"]["groups"], got["learner"]["resume"]) == \
         (str(graph.tmp / "run"), ["/"], True)
     assert got["environment"]["wait_for_learner"] is True and got["environment"]["publish_clock"] is True
@@ -234,7 +239,7 @@ REFUSED = {  # node: (parameter, value, words the reason must hold)
     "critic": [("env", "hdrqn/FourRooms-2Goals-v0", "read-only"), ("option_timeout", -5.0, "out of range")],
     "meta_controller": [("checkpoint", "/nonexistent.pt", "read-only"), ("epsilon", 5.0, "out of range")],
     "sub_controller": [("algo", "nonsense", "read-only"), ("epsilon", 5.0, "out of range"),
-                       ("num_envs", 99999, "read-only"), ("checkpoint", "/nonexistent.pt", "read-only"),
+                       ("num_envs", 2, "read-only"), ("checkpoint", "/nonexistent.pt", "read-only"),
                        ("stale_after_s", 0.0, "must be > 0"), ("epsilon", "zero", "type")],
     "learner": [("episodes", 5, "read-only"), ("record", "/tmp/x", "read-only")],
 }
@@ -274,7 +279,7 @@ def test_param_set_refuses_with_a_reason_and_accepts_live_ones(graph):
 
 def test_param_describe_shows_descriptions_and_rules(graph):
     """``ros2 param describe``: every declared parameter has a description; read-only ones say
-    so; ranges are the descriptor's."""
+    so (on a managed node: writable only while unconfigured); ranges are the descriptor's."""
     for node in NODES:
         client = AsyncParameterClient(graph.node, f"/{node}")
         graph.mw.spin(until=client.services_are_ready, timeout_s=30)
@@ -282,7 +287,11 @@ def test_param_describe_shows_descriptions_and_rules(graph):
         descriptors = {d.name: d for d in graph.result(client.describe_parameters(names), 10, node).descriptors}
         for name in names:
             assert descriptors[name].description, f"/{node} {name} has no description"
-        assert descriptors["algo"].read_only and "read-only" in descriptors["algo"].additional_constraints
+        algo = descriptors["algo"]
+        if node in MANAGED:
+            assert not algo.read_only and "unconfigured" in algo.additional_constraints, (node, algo)
+        else:
+            assert algo.read_only and "read-only" in algo.additional_constraints, (node, algo)
     sub = AsyncParameterClient(graph.node, "/sub_controller")
     epsilon = graph.result(sub.describe_parameters(["epsilon"]), 10, "epsilon").descriptors[0]
     assert not epsilon.read_only
@@ -295,12 +304,14 @@ DIAGNOSED = ("meta_controller", "sub_controller")
 
 def test_node_and_topic_introspection_matches_the_docs(graph):
     """``ros2 node list``, ``ros2 topic list -t`` and ``ros2 node info``: the five nodes,
-    every topic with the type of docs/topics.md, and who publishes what."""
+    every topic with the type of docs/topics.md (and the lifecycle nodes' ``~/transition_event``),
+    and who publishes what."""
     table = documented_topics()
     assert {"/env_step", "/observation", "/learner/status", "/clock", "/sub_state"} <= set(table)
     assert table["/env_step"]["type"] == wire.FLOATS and table["/observation"]["type"] == wire.IMAGE
     assert table["/learner/status"] == {"type": wire.STRING, "publisher": "learner", "subscribers": set()}
-    topics = {**table, **nav2_topics()}
+    lifecycle = {f"/{node}/{LIFECYCLE_TOPIC[0]}": {"type": LIFECYCLE_TOPIC[1], "publisher": node} for node in MANAGED}
+    topics = {**table, **nav2_topics(), **lifecycle}
     expected = {name: [row["type"]] for name, row in topics.items()} | {t: [ty] for t, ty in RCLPY_TOPICS.items()}
 
     names = {name for name, ns in graph.node.get_node_names_and_namespaces() if ns == "/"}
@@ -353,12 +364,13 @@ LOG_SEQUENCE = [("info", Log.INFO, "INFO"), ("warning", Log.WARN, "WARN"), ("err
 
 
 def test_logger_severities_in_process_reach_rosout(graph):
-    """info, warning, error, info again through ``node.logger`` of an rclpy node: all four
-    arrive on /rosout, in order, with their severities (no "severity cannot be changed")."""
-    node = graph.mw.create_node("log_probe")
+    """info, warning, error, info again through the :mod:`logging` logger a node hands the
+    protocol layer (:func:`~hdrqn_ros.nodes.node_logger.python_logger`): all four arrive on
+    /rosout, in order, with their severities (no "severity cannot be changed")."""
+    logger = python_logger(graph.mw.create_node("log_probe"))
     tag = f"tooling-{time.monotonic_ns()}"
     for i, (method, _, _) in enumerate(LOG_SEQUENCE):
-        getattr(node.logger, method)("%s line %d", tag, i)
+        getattr(logger, method)("%s line %d", tag, i)
 
     def arrived() -> str | None:
         got = [m for m in graph.rosout if m.name == "log_probe" and tag in m.msg]
@@ -370,13 +382,17 @@ def test_logger_severities_in_process_reach_rosout(graph):
 
 
 def run_rclpy_child(code: str, timeout: float = 60) -> subprocess.CompletedProcess:
-    """``code`` in a new Python process with ``mw`` (an RclpyMiddleware: loopback defaults
-    applied before rclpy.init) and ``node`` (its node ``child``); shut down at the end."""
-    script = ("from hdrqn_ros.middleware.rclpy_backend import RclpyMiddleware\n"
-              "mw = RclpyMiddleware(['child'])\n"
-              "node = mw.create_node('child')\n"
+    """``code`` in a new Python process with ``logger``, the :mod:`logging` logger of the rclpy
+    node ``child`` (loopback defaults applied before rclpy.init); shut down at the end."""
+    script = ("import rclpy\n"
+              "from hdrqn_ros.dds import apply_rmw_network_defaults\n"
+              "from hdrqn_ros.nodes.node_logger import python_logger\n"
+              "apply_rmw_network_defaults(None)\n"
+              "rclpy.init(args=['child'])\n"
+              "node = rclpy.create_node('child')\n"
+              "logger = python_logger(node)\n"
               "try:\n" + "".join(f"    {line}\n" for line in code.splitlines()) +
-              "finally:\n    mw.shutdown()\n")
+              "finally:\n    node.destroy_node()\n    rclpy.shutdown()\n")
     env = {k: v for k, v in os.environ.items() if not k.startswith("RCUTILS_")}  # rcutils' default console format
     run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=timeout, env=env)
     assert run.returncode == 0, run.stderr
@@ -386,7 +402,7 @@ def run_rclpy_child(code: str, timeout: float = 60) -> subprocess.CompletedProce
 
 def test_logger_severities_show_on_stderr(graph):
     """The same four lines in a process of their own: rclpy's console output (stderr)."""
-    run = run_rclpy_child("\n".join(f"node.logger.{method}('stderr line %d', {i})"
+    run = run_rclpy_child("\n".join(f"logger.{method}('stderr line %d', {i})"
                                     for i, (method, _, _) in enumerate(LOG_SEQUENCE)))
     lines = [line for line in run.stderr.splitlines() if "stderr line" in line]
     assert len(lines) == len(LOG_SEQUENCE), run.stderr
@@ -395,11 +411,12 @@ def test_logger_severities_show_on_stderr(graph):
 
 
 def test_throttled_rejections_on_rclpy(graph):
-    """200 rejections within a second through :class:`Throttle` on an rclpy node's logger:
+    """200 rejections within a second through :class:`Throttle` on an rclpy node's logger
+    (:func:`~hdrqn_ros.nodes.node_logger.python_logger`):
     the burst, then nothing more until the period ends; each line has the running count."""
     run = run_rclpy_child("import time\n"
                           "from hdrqn_ros.throttle import Throttle\n"
-                          "rejected = Throttle(node.logger, 'rejected a message on /probe')\n"
+                          "rejected = Throttle(logger, 'rejected a message on /probe')\n"
                           "start = time.monotonic()\n"
                           "for i in range(200):\n"
                           "    rejected.warn(f'bad message {i}')\n"

@@ -1,15 +1,19 @@
 """Fuzzing the untrusted inputs (issue 7): wire messages, configs and ROS parameters, bags, the CLI.
 
 Hypothesis feeds every parser random and mutated input. The only failure allowed is the
-documented error type, with a message naming the problem: ``DecodeError`` for CDR bytes,
-``ProtocolError`` for message contents, ``ConfigError``/``ParameterError``/``RosArgsError``
-for configs and ROS arguments, ``BagError`` for bags, and for the CLI an exit code 0/1/2
-with no traceback. Sizes are capped so that no example can hang or exhaust memory.
+documented error type, with a message naming the problem: for CDR bytes rclpy's
+deserializer raises (a node drops the sample, the player names the bag), ``ProtocolError``
+for message contents, ``ConfigError`` for configs, for ROS arguments and parameters files
+rcl's ``RuntimeError`` (a node exits 2) or ``NodeConfigError`` naming the parameter,
+``BagError`` for bags, and for the CLI an exit code 0/1/2 with no traceback. Sizes are
+capped so that no example can hang or exhaust memory. The message and ROS-argument tests
+need rclpy; the others run without ROS.
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import importlib
 import logging
 import math
@@ -29,15 +33,13 @@ import hdrqn_ros
 from hdrqn_ros import cli
 from hdrqn_ros.config import ConfigError, TrainConfig, build_config, parse_set
 from hdrqn_ros.envs.registration import GRID_IDS, make_batch
-from hdrqn_ros.middleware.messages import DecodeError, decode, message_class
-from hdrqn_ros.middleware.port import ParameterError, RosArgsError
-from hdrqn_ros.middleware.ros_args import check_parameter_type, load_params_file, remap_and_resolve, split_ros_args
-from hdrqn_ros.nodes import nav
 from hdrqn_ros.protocol import follower, wire
 from hdrqn_ros.protocol.assembly import TransitionAssembler
 from hdrqn_ros.recording.bag import TYPESTORE, BagError, bag_summary, bag_topics, read_messages, repair_bag
 from hdrqn_ros.recording.transitions import (GROUP_TOPICS, BagReadStats, BagRecorder, RosbagsMessages, bag_config, episode_summary,
                                              read_episodes, recorded_topics)
+
+from conftest import NEEDS_RCLPY
 
 QUICK = dict(deadline=None, database=None,
              suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture,
@@ -46,62 +48,91 @@ OBS = 44
 NUM_ACTIONS, NUM_SUBGOALS = 4, 2  # the two-goal gridworld
 CFG = build_config([], algo="hdrqn-v2", env="hdrqn/GridWorld-2Goals-v0", episodes=5, num_envs=1)
 LOG = logging.getLogger("hdrqn.test_fuzz")
+OCCUPANCY_GRID, TWIST = "nav_msgs/msg/OccupancyGrid", "geometry_msgs/msg/Twist"
+"""``nav.OCCUPANCY_GRID`` and ``nav.TWIST``, named here: :mod:`hdrqn_ros.nodes.nav` imports ROS."""
 
 
-class CycloneMessages:
-    """What the ``make_*`` helpers need of a node, with the Cyclone backend's message classes."""
+def ros(module: str):
+    """``hdrqn_ros.nodes.<module>``, imported when a test that needs rclpy runs."""
+    return importlib.import_module(f"hdrqn_ros.nodes.{module}")
 
-    msg = staticmethod(message_class)
+
+class RclpyMessages:
+    """rclpy's message factory (:data:`hdrqn_ros.nodes.ros_messages.ROS_MESSAGES`), imported on
+    first use."""
+
+    @staticmethod
+    def msg(type_name: str) -> type:
+        return ros("ros_messages").interface_class(type_name)
 
     @staticmethod
     def pack(values):
-        return values
+        return ros("ros_messages").pack(values)
 
 
-CY = CycloneMessages()
+RC = RclpyMessages()
 
 
-def to_cdr(msg) -> bytes:
-    """What ``CycloneNode.to_cdr`` (and a DDS writer) sends for ``msg``."""
-    return msg.serialize(use_version_2=False)
+def received(msg):
+    """``msg`` as a node's subscription receives it: serialized by the RMW and deserialized."""
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    return deserialize_message(serialize_message(msg), type(msg))
 
 
-# -- 1. message decoding ---------------------------------------------------------------------------
-SUBSCRIBED = [wire.IMAGE, wire.FLOATS, wire.INTS, wire.BYTES, nav.OCCUPANCY_GRID]
+# -- 1. CDR bytes, as rclpy's deserializer takes them ------------------------------------------------
+SUBSCRIBED = [wire.IMAGE, wire.FLOATS, wire.INTS, wire.BYTES, OCCUPANCY_GRID]
 """Every type a node subscribes to (observations and subgoal images; env_step, critic, credit,
 sub_state; action, subgoal; weights; the Nav2 costmap)."""
-PLAYED = [wire.STRING, wire.POSE_STAMPED, wire.CLOCK_TYPE, nav.TWIST, "rcl_interfaces/msg/Log"]
-"""Further types the bag player decodes (``Node.from_cdr``) from recordings."""
+PLAYED = [wire.STRING, wire.POSE_STAMPED, wire.CLOCK_TYPE, TWIST, "rcl_interfaces/msg/Log"]
+"""Further types the bag player decodes (``ros_messages.from_cdr``) from recordings."""
 HEADERS = [b"\x00\x01\x00\x00", b"\x00\x00\x00\x00", b"\x00\x07\x00\x00", b"\x00\x09\x00\x00"]
 """CDR little- and big-endian, XCDR2 little-endian, XCDR2 delimited."""
 WORDS = [(2**32 - 1).to_bytes(4, "little"), (2**31 - 1).to_bytes(4, "little"), (2**31).to_bytes(4, "big"),
          (2**20).to_bytes(4, "little"), (3).to_bytes(4, "little"), b"\x00\x00\x00\x00"]
 """Lengths that lie: huge, negative when signed, a few, none."""
+SAMPLE_NAMES = ("observation", "env_step", "action", "sub_state", "weights", "costmap", "pose", "string")
 
 
-def sample_messages() -> dict[str, tuple[str, bytes]]:
+class Undecodable(Exception):
+    """rclpy's deserializer refused the bytes."""
+
+
+def decoded(type_name: str, data: bytes):
+    """``data`` through rclpy's deserializer, as a node's subscription and the player take
+    received bytes (``ros_messages.from_cdr``); its refusal, rclpy's ``RMWError`` (a
+    ``RuntimeError``, which they catch), as :class:`Undecodable`. Anything else (a crash,
+    another exception) fails the test."""
+    try:
+        return ros("ros_messages").from_cdr(type_name, data)
+    except RuntimeError as exc:
+        assert "deserialize" in str(exc), exc
+        raise Undecodable(str(exc)) from None
+
+
+@functools.cache
+def samples() -> dict[str, tuple[str, bytes]]:
     """One realistic sample of each subscribed type, as CDR."""
-    grid = message_class(nav.OCCUPANCY_GRID)()
+    grid = RC.msg(OCCUPANCY_GRID)()
     grid.info.width, grid.info.height, grid.info.resolution = 6, 5, 0.05
-    grid.data = np.arange(30, dtype=np.int8)
+    grid.data = RC.pack(np.arange(30, dtype=np.int8))
     pixels = np.arange(OBS * OBS * 3, dtype=np.uint32).astype(np.uint8).reshape(OBS, OBS, 3)
     step = [20_000_000, 10_000_000, 1, 0, 1, 2, 0.5, -0.1, 0, 0, -1, 0, 0, 0, 0, 1]
-    msgs = {"observation": (wire.IMAGE, wire.make_image(CY, 20_000_000, pixels, "map")),
-            "env_step": (wire.FLOATS, wire.make_record(CY, wire.FLOATS, wire.STEP_FIELDS, step)),
-            "action": (wire.INTS, wire.make_record(CY, wire.INTS, wire.ACTION_FIELDS, [10_000_000, 3])),
-            "sub_state": (wire.FLOATS, wire.make_state(CY, 10_000_000, np.linspace(-1, 1, 256))),
-            "weights": (wire.BYTES, wire.make_weights(CY, bytes(range(64)), 1234)),
-            "costmap": (nav.OCCUPANCY_GRID, grid),
-            "pose": (wire.POSE_STAMPED, wire.make_pose(CY, 20_000_000, "map", 1.0, 2.0)),
-            "string": (wire.STRING, message_class(wire.STRING)(data="status ok"))}
-    return {name: (type_name, to_cdr(msg)) for name, (type_name, msg) in msgs.items()}
-
-
-SAMPLES = sample_messages()
+    msgs = {"observation": (wire.IMAGE, wire.make_image(RC, 20_000_000, pixels, "map")),
+            "env_step": (wire.FLOATS, wire.make_record(RC, wire.FLOATS, wire.STEP_FIELDS, step)),
+            "action": (wire.INTS, wire.make_record(RC, wire.INTS, wire.ACTION_FIELDS, [10_000_000, 3])),
+            "sub_state": (wire.FLOATS, wire.make_state(RC, 10_000_000, np.linspace(-1, 1, 256))),
+            "weights": (wire.BYTES, wire.make_weights(RC, bytes(range(64)), 1234)),
+            "costmap": (OCCUPANCY_GRID, grid),
+            "pose": (wire.POSE_STAMPED, wire.make_pose(RC, 20_000_000, "map", 1.0, 2.0)),
+            "string": (wire.STRING, RC.msg(wire.STRING)(data="status ok"))}
+    assert set(msgs) == set(SAMPLE_NAMES)
+    return {name: (type_name, ros("ros_messages").to_cdr(msg)) for name, (type_name, msg) in msgs.items()}
 
 
 def read_as_node(name: str, msg):
     """What the node that subscribes to sample ``name``'s topic reads from ``msg``."""
+    nav = ros("nav")
     readers = {"observation": lambda: wire.read_image(msg, OBS, OBS),
                "env_step": lambda: wire.read_record(msg, wire.STEP_FIELDS),
                "action": lambda: wire.check_index(wire.read_record(msg, wire.ACTION_FIELDS, np.int64)["action"],
@@ -117,18 +148,18 @@ def read_as_node(name: str, msg):
 lying_bytes = st.lists(st.one_of(st.binary(max_size=24), st.sampled_from(WORDS)), max_size=24).map(b"".join)
 
 
+@NEEDS_RCLPY
 @settings(max_examples=300, **QUICK)
 @given(type_name=st.sampled_from(SUBSCRIBED + PLAYED), header=st.sampled_from(HEADERS) | st.binary(max_size=4),
        body=lying_bytes)
 @example(type_name=wire.FLOATS, header=HEADERS[0], body=b"")  # an empty payload is not a default message
-def test_arbitrary_bytes_decode_or_raise_decode_error(type_name, header, body):
-    cls = message_class(type_name)
+@example(type_name=wire.BYTES, header=HEADERS[0], body=WORDS[0] * 6)  # lengths far beyond the bytes
+def test_arbitrary_bytes_decode_or_are_refused(type_name, header, body):
     try:
-        msg = decode(cls, header + body)
-    except DecodeError as exc:
-        assert type_name in str(exc)
-    else:
-        assert isinstance(msg, cls) and len(header + body) >= 8
+        msg = decoded(type_name, header + body)
+    except Undecodable:
+        return
+    assert type(msg) is RC.msg(type_name) and len(header + body) >= 8
 
 
 def _mutate(data: bytes, edits) -> bytes:
@@ -151,34 +182,35 @@ edits = st.lists(st.tuples(st.sampled_from(["flip", "word", "cut"]), st.integers
                  min_size=1, max_size=3)
 
 
+@NEEDS_RCLPY
 @settings(max_examples=300, **QUICK)
-@given(name=st.sampled_from(sorted(SAMPLES)), edits=edits)
+@given(name=st.sampled_from(SAMPLE_NAMES), edits=edits)
 def test_mutated_samples_are_read_or_rejected_like_a_node_does(name, edits):
-    """A corrupted sample: the decoder raises DecodeError or the node's reader ProtocolError
-    (NavConfigError for a costmap); a shortened one never decodes."""
-    type_name, data = SAMPLES[name]
-    bad = _mutate(data, edits)
+    """A corrupted sample: the deserializer refuses it or the node's reader raises
+    ProtocolError (NavConfigError for a costmap); a shortened one never decodes."""
+    type_name, data = samples()[name]
     try:
-        msg = decode(message_class(type_name), bad)
-    except DecodeError as exc:
-        assert type_name in str(exc)
+        msg = decoded(type_name, _mutate(data, edits))
+    except Undecodable:
         return
     assert any(kind != "cut" for kind, *_ in edits), "a truncated sample decoded"
     try:
         read_as_node(name, msg)
-    except (wire.ProtocolError, nav.NavConfigError) as exc:
+    except (wire.ProtocolError, ros("nav").NavConfigError) as exc:
         assert str(exc)
 
 
+@NEEDS_RCLPY
 @settings(max_examples=100, **QUICK)
-@given(name=st.sampled_from(sorted(SAMPLES)), cut=st.integers(1, 64))
+@given(name=st.sampled_from(SAMPLE_NAMES), cut=st.integers(1, 64))
 def test_truncated_samples_never_decode(name, cut):
-    type_name, data = SAMPLES[name]
-    with pytest.raises(DecodeError, match=type_name):
-        decode(message_class(type_name), data[:-cut])
-    assert read_as_node(name, decode(message_class(type_name), data)) is not None  # the whole one does
+    type_name, data = samples()[name]
+    with pytest.raises(Undecodable):
+        decoded(type_name, data[:-cut])
+    assert read_as_node(name, decoded(type_name, data)) is not None  # the whole one does
 
 
+# -- 2. message contents, as the nodes read them -----------------------------------------------------
 any_float = st.floats(allow_nan=True, allow_infinity=True) | st.integers(-2**63, 2**63 - 1).map(float)
 key_like = st.integers(-5, 2**54).map(float) | any_float
 
@@ -195,6 +227,7 @@ RECORDS = [(wire.STEP_FIELDS, np.float64), (wire.CRITIC_FIELDS, np.float64), (wi
            (wire.ACTION_FIELDS, np.int64), (wire.SUBGOAL_FIELDS, np.int64)]
 
 
+@NEEDS_RCLPY
 @settings(max_examples=300, **QUICK)
 @given(data=st.data(), which=st.integers(0, len(RECORDS) - 1))
 def test_records_with_random_values_are_read_or_rejected(data, which):
@@ -203,7 +236,7 @@ def test_records_with_random_values_are_read_or_rejected(data, which):
     type_name = wire.FLOATS if dtype == np.float64 else wire.INTS
     if dtype == np.int64:
         values = [int(v) if math.isfinite(v) and abs(v) < 2**63 else -1 for v in values]
-    msg = decode(message_class(type_name), to_cdr(message_class(type_name)(data=np.asarray(values, dtype))))
+    msg = received(RC.msg(type_name)(data=RC.pack(np.asarray(values, dtype))))
     try:
         rec = wire.read_record(msg, fields, dtype)
     except wire.ProtocolError as exc:
@@ -219,6 +252,7 @@ def test_records_with_random_values_are_read_or_rejected(data, which):
                 assert name in str(exc)
 
 
+@NEEDS_RCLPY
 @settings(max_examples=200, **QUICK)
 @given(height=st.sampled_from([OBS, 2 * OBS, 0, 1, 2**32 - 1]) | st.integers(0, 2**32 - 1),
        width=st.sampled_from([OBS, 0, 2**31]) | st.integers(0, 2**32 - 1),
@@ -227,10 +261,11 @@ def test_records_with_random_values_are_read_or_rejected(data, which):
        size=st.sampled_from([OBS * OBS * 3, 2 * OBS * OBS * 3, 0]) | st.integers(0, 3 * OBS * OBS * 3),
        sec=st.integers(-2**31, 2**31 - 1), nanosec=st.integers(0, 2**32 - 1), rows=st.sampled_from([1, 2]))
 def test_images_with_random_fields_are_read_or_rejected(height, width, step, encoding, size, sec, nanosec, rows):
-    Image, Header, Time = (message_class(t) for t in (wire.IMAGE, "std_msgs/msg/Header", "builtin_interfaces/msg/Time"))
+    Image, Header, Time = (RC.msg(t) for t in (wire.IMAGE, "std_msgs/msg/Header", "builtin_interfaces/msg/Time"))
     img = Image(header=Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id="map"), height=height, width=width,
-                encoding=encoding, is_bigendian=0, step=step, data=np.arange(size, dtype=np.uint32).astype(np.uint8))
-    msg = decode(Image, to_cdr(img))
+                encoding=encoding, is_bigendian=0, step=step,
+                data=RC.pack(np.arange(size, dtype=np.uint32).astype(np.uint8)))
+    msg = received(img)
     try:
         key, pixels = wire.read_image(msg, OBS * rows, OBS)
     except wire.ProtocolError as exc:
@@ -240,10 +275,11 @@ def test_images_with_random_fields_are_read_or_rejected(height, width, step, enc
     assert (pixels.reshape(-1) == np.arange(size, dtype=np.uint32).astype(np.uint8)).all()
 
 
+@NEEDS_RCLPY
 @settings(max_examples=100, **QUICK)
 @given(key=key_like, state=st.lists(any_float, min_size=250, max_size=260))
 def test_sub_states_with_random_values_are_read_or_rejected(key, state):
-    msg = decode(message_class(wire.FLOATS), to_cdr(message_class(wire.FLOATS)(data=np.asarray([key, *state]))))
+    msg = received(RC.msg(wire.FLOATS)(data=RC.pack(np.asarray([key, *state]))))
     try:
         got_key, got = wire.read_state(msg, 256)
     except wire.ProtocolError as exc:
@@ -252,6 +288,7 @@ def test_sub_states_with_random_values_are_read_or_rejected(key, state):
     assert got_key == key and got.shape == (256,) and got.dtype == np.float32 and np.isfinite(got).all()
 
 
+@NEEDS_RCLPY
 @settings(max_examples=200, **QUICK)
 @given(labels=st.lists(st.text(max_size=12).map(lambda s: "safetensors update=" + s) | st.text(max_size=30),
                        max_size=2),
@@ -259,23 +296,25 @@ def test_sub_states_with_random_values_are_read_or_rejected(key, state):
 @example(labels=["safetensors update=\u00b2"], version=0)  # a superscript two: str.isdigit, but not int()
 @example(labels=["safetensors update=" + "9" * 5000], version=0)  # over int()'s digit limit
 def test_weights_version_labels_never_raise(labels, version):
-    Dim, Layout = message_class("std_msgs/msg/MultiArrayDimension"), message_class("std_msgs/msg/MultiArrayLayout")
+    Dim, Layout = RC.msg("std_msgs/msg/MultiArrayDimension"), RC.msg("std_msgs/msg/MultiArrayLayout")
     layout = Layout(dim=[Dim(label=label, size=0, stride=0) for label in labels], data_offset=0)
-    msg = decode(message_class(wire.BYTES), to_cdr(message_class(wire.BYTES)(layout=layout, data=np.zeros(3, np.uint8))))
+    msg = received(RC.msg(wire.BYTES)(layout=layout, data=RC.pack(np.zeros(3, np.uint8))))
     assert wire.read_weights_version(msg) >= 0
     if version < 10**18:
-        assert wire.read_weights_version(wire.make_weights(CY, b"xyz", version)) == version
+        assert wire.read_weights_version(received(wire.make_weights(RC, b"xyz", version))) == version
 
 
+@NEEDS_RCLPY
 @settings(max_examples=150, **QUICK)
 @given(width=st.integers(0, 12) | st.integers(0, 2**32 - 1), height=st.integers(0, 12),
        resolution=st.floats(width=32), x=st.floats(), y=st.floats(), size=st.integers(0, 150))
 def test_costmaps_with_random_fields_are_read_or_rejected(width, height, resolution, x, y, size):
-    grid = message_class(nav.OCCUPANCY_GRID)()
+    nav = ros("nav")
+    grid = RC.msg(OCCUPANCY_GRID)()
     grid.info.width, grid.info.height, grid.info.resolution = width, height, resolution
     grid.info.origin.position.x, grid.info.origin.position.y = x, y
-    grid.data = (np.arange(size) % 256 - 128).astype(np.int8)
-    msg = decode(message_class(nav.OCCUPANCY_GRID), to_cdr(grid))
+    grid.data = RC.pack((np.arange(size) % 256 - 128).astype(np.int8))
+    msg = received(grid)
     try:
         obs = nav.costmap_to_observation(msg, view_cells=5)
     except nav.NavConfigError as exc:
@@ -284,7 +323,7 @@ def test_costmaps_with_random_fields_are_read_or_rejected(width, height, resolut
     assert obs.shape == (OBS, OBS, 3) and obs.dtype == np.uint8
 
 
-# -- the learner's assembly of transitions (the node's subscriptions, and bags) ----------------------
+# -- 3. the learner's assembly of transitions (the node's subscriptions, and bags) -------------------
 STEP_NS = 10_000_000
 
 
@@ -488,7 +527,7 @@ def test_learner_assembles_random_messages_without_crashing(episodes):
         check_episode(sub, meta)
 
 
-# -- 3. bags -------------------------------------------------------------------------------------------
+# -- 4. bags -------------------------------------------------------------------------------------------
 def write_recording(path: Path, episodes: list[list[dict]], compress: bool = False) -> Path:
     """A recording of one hDRQNv2 group (what ``hdrqn train --record`` writes), uncompressed by default
     so that byte flips reach the CDR."""
@@ -629,7 +668,7 @@ def test_recordings_of_odd_values_give_episodes_fit_for_training_or_bag_errors(e
             assert str(bag) in str(exc) and "topic /env_step" in str(exc), exc
 
 
-# -- 2. configs, --set overrides, ROS arguments and parameter files ---------------------------------
+# -- 5. configs, --set overrides, ROS arguments and parameters files --------------------------------
 NASTY_YAML = ["2001-13-01", "2001-02-30 10:00:00", "!!int x", "a: !!int", "!!float x", "!!bool maybe", "!!timestamp x",
               "!!binary '%'", "[" * 1200, "{" * 1200, "&a [*a]", "*x", "!!python/object/apply:os.system [ls]",
               "{[1]: 2}", "? [a]\n: 1", "\x00", "\ufeff\x85", "1e999", "-.inf", ".nan", "0x1_", "~", "''", "|\n x",
@@ -699,62 +738,95 @@ def test_config_files_give_a_config_or_config_error_naming_the_file(doc):
 
 ROS_FLAGS = ["--ros-args", "--", "-p", "--param", "-r", "--remap", "--params-file", "--log-level", "-e", "--enclave",
              "--disable-rosout-logs", "--unknown", "-x"]
-ros_values = (st.tuples(st.sampled_from(["algo", "view", "ros_domain_id", "__node", "__ns", "env_step", "/a", "~/b",
-                                         "node:topic", "", "x:y:z"]),
+ros_values = (st.tuples(st.sampled_from(["algo", "view", "seed", "num_envs", "epsilon", "groups", "resume", "episodes",
+                                         "max_message_bytes", "use_sim_time", "__node", "__ns", "env_step", "/a",
+                                         "~/b", "node:topic", "", "x:y:z"]),
                         st.sampled_from([":=", "=", ""]), yaml_values).map("".join) | st.text(max_size=10))
-PARAM_DEFAULTS = {"algo": "hdrqn-v2", "view": "5", "seed": 0, "epsilon": -1.0, "groups": ["/"], "resume": False}
+params_files = st.dictionaries(
+    st.sampled_from(["/**", "learner", "/learner", "/**/sub_controller", "/group0/sub_controller", "/a/b/learner",
+                     "ns"]),
+    st.dictionaries(st.sampled_from(["ros__parameters", "learner", "x"]),
+                    st.dictionaries(st.sampled_from(["algo", "view", "seed", "num_envs", "epsilon", "groups",
+                                                     "episodes", "max_message_bytes"]) | st.text(max_size=5),
+                                    json_like, max_size=3) | json_like, max_size=2),
+    max_size=2).map(yaml.safe_dump)
+"""ROS 2 parameters files, mostly shaped as one (``/**:`` / node name, ``ros__parameters:``)."""
+PRIVATE_DOMAIN = 228
+"""The DDS domain of this module's nodes: no process test takes it (they use 20..219)."""
 
 
-@settings(max_examples=300, **QUICK)
+@functools.cache
+def fuzzed_table() -> dict:
+    """The parameters a node declares: the controllers' and the learner's (every kind of rule)."""
+    return {**ros("controller_node").CONTROLLER_PARAMETERS, **ros("learner").PARAMETERS}
+
+
+def declared_as(value, default) -> bool:
+    if isinstance(default, list):
+        return isinstance(value, list) and all(type(v) is type(default[0]) for v in value)
+    return type(value) is type(default)
+
+
+@NEEDS_RCLPY
+@settings(max_examples=200, **QUICK)
 @given(argv=st.lists(st.sampled_from(ROS_FLAGS) | ros_values, max_size=8),
-       params=json_like | st.sampled_from(NASTY_YAML),
-       node=st.sampled_from(["learner", "sub_controller"]), ns=st.sampled_from(["/", "/group0", "/a/b"]),
-       topic=st.sampled_from(["env_step", "/clock", "~/status", "x"]))
-def test_ros_args_and_params_files_give_parameters_or_errors(argv, params, node, ns, topic):
-    """``--ros-args`` (with a random parameters file): RosArgsError or ParameterError, else
-    parameters that a node declares with ParameterError for a wrong type."""
-    doc = params if isinstance(params, str) else yaml.safe_dump(params)
-    with text_file(doc, "params.yaml") as path:
+       params=params_files | json_like.map(yaml.safe_dump) | st.sampled_from(NASTY_YAML), with_file=st.booleans(),
+       node=st.sampled_from(["learner", "sub_controller"]), ns=st.sampled_from(["/", "/group0", "/a/b"]))
+@example(argv=[], params="/**:\n  ros__parameters:\n    seed: 2001-13-01\n", with_file=True, node="learner", ns="/")
+@example(argv=["-p", "max_message_bytes:=[1]"], params="", with_file=False, node="learner", ns="/")
+@example(argv=["-p", "epsilon:=.nan"], params="", with_file=False, node="sub_controller", ns="/group0")
+def test_ros_args_and_params_files_give_parameters_or_errors(argv, params, with_file, node, ns):
+    """``--ros-args`` and a random parameters file, as a node process starts (``run_node``):
+    ``rclpy.init`` refuses them with a ``RuntimeError`` (the node exits 2), or the node is made
+    and declares its parameters: each of its declared type and within its rules, or a
+    ``NodeConfigError`` naming the parameter (exit 2)."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.node import Node
+    from rclpy.signals import SignalHandlerOptions
+
+    from hdrqn_ros.dds import INTERFACE_ENV, apply_rmw_network_defaults
+
+    parameters = ros("parameters")
+    table = fuzzed_table()
+    with text_file(params, "params.yaml") as path, mock.patch.dict(os.environ):
+        apply_rmw_network_defaults(os.environ.get(INTERFACE_ENV) or None)
         if "--params-file" in argv:
             argv.insert(argv.index("--params-file") + 1, str(path))
+        elif with_file:
+            argv = ["--params-file", str(path), *argv]
+        context = Context()
         try:
-            user, ros = split_ros_args(argv)
-        except (RosArgsError, ParameterError) as exc:
+            rclpy.init(args=["fuzz", "--ros-args", *argv], context=context, domain_id=PRIVATE_DOMAIN,
+                       signal_handler_options=SignalHandlerOptions.NO)
+        except RuntimeError as exc:
             assert str(exc)
             return
-    assert isinstance(user, list) and remap_and_resolve(ros, topic, ns, node).startswith("/")
-    for name, value in ros.parameters_for(node, ns).items():
-        if name in PARAM_DEFAULTS:
-            try:
-                check_parameter_type(f"{ns}/{node}", name, PARAM_DEFAULTS[name], value)
-            except ParameterError as exc:
-                assert name in str(exc)
-
-
-@settings(max_examples=200, **QUICK)
-@given(doc=json_like.map(yaml.safe_dump) | st.sampled_from(NASTY_YAML) | st.text(max_size=40)
-       | st.dictionaries(st.sampled_from(["/**", "learner", "/group0/critic", "ns"]),
-                         st.dictionaries(st.sampled_from(["ros__parameters", "learner", "x"]), json_like, max_size=2),
-                         max_size=2).map(yaml.safe_dump))
-@example(doc="/**:\n  ros__parameters:\n    seed: 2001-13-01\n")
-def test_params_files_give_entries_or_parameter_error_naming_the_file(doc):
-    with text_file(doc, "params.yaml") as path:
         try:
-            entries = load_params_file(path)
-        except ParameterError as exc:
-            assert str(path) in str(exc)
-            return
-    assert all(isinstance(pattern, str) and isinstance(name, str) for pattern, name, _ in entries)
+            made = Node(node, namespace=ns, context=context)
+            try:
+                values = parameters.declare_parameters(made, table)
+            except parameters.NodeConfigError as exc:
+                assert any(f"parameter {name!r}" in str(exc) for name in table), exc
+                return
+            finally:
+                made.destroy_node()
+        finally:
+            rclpy.try_shutdown(context=context)
+            context.destroy()
+    for name, param in table.items():
+        assert declared_as(values[name], param.default) and param.refusal(name, values[name]) is None, \
+            (name, values[name])
 
 
-# -- 4. the hdrqn command -------------------------------------------------------------------------------
+# -- 6. the hdrqn command -------------------------------------------------------------------------------
 class Started(BaseException):
     """Raised where a command would start its long work (training, evaluation, a graph, playing)."""
 
 
 LONG_WORK = ["hdrqn_ros.training.trainer.Trainer", "hdrqn_ros.training.offline.OfflineTrainer",
              "hdrqn_ros.training.learner.evaluate", "hdrqn_ros.supervisor.Supervisor",
-             "hdrqn_ros.nodes.common.run_node"]
+             "hdrqn_ros.nodes.process.run_node"]
 CLI_COMMANDS = [("train",), ("eval",), ("plot",), ("up",), ("bag", "info"), ("bag", "repair"), ("bag", "play"),
                 ("envs",)]
 """The commands fuzzed (with LONG_WORK stubbed): not ``experiment``, which starts processes."""
@@ -882,17 +954,3 @@ def test_cli_up_out_is_a_file(recording, capsys, long_work_stubbed):
 def test_cli_infinite_record_split(recording, capsys, long_work_stubbed):
     with cli_workdir(recording):
         assert run_cli(["train", "--out", "run", "--record", "rec", "--record-split-mb", "inf"], capsys) == 2
-
-
-@pytest.mark.parametrize("argv, env, name", [
-    (["--ros-args", "-p", "ros_domain_id:=abc"], {}, "ros_domain_id"),
-    (["--ros-args", "-p", "max_message_bytes:=[1]"], {}, "max_message_bytes"),
-    ([], {"ROS_DOMAIN_ID": "x"}, "ROS_DOMAIN_ID"),
-])
-def test_middleware_settings_of_the_wrong_type_name_the_setting(argv, env, name, monkeypatch):
-    from hdrqn_ros.middleware.cyclone import CycloneMiddleware
-
-    for key, value in env.items():
-        monkeypatch.setenv(key, value)
-    with pytest.raises(ParameterError, match=name):
-        CycloneMiddleware(argv)

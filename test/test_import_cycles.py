@@ -61,7 +61,7 @@ def test_a_circle_through_a_function_level_import_is_found(tmp_path):
     (pkg / "nodes").mkdir(parents=True)
     for init in (pkg / "__init__.py", pkg / "nodes" / "__init__.py"):
         init.write_text("")
-    (pkg / "nodes" / "common.py").write_text("def make():\n    from hdrqn_ros.nodes import acting\n")
-    (pkg / "nodes" / "acting.py").write_text("from hdrqn_ros.nodes.common import make\n")
-    (pkg / "nodes" / "other.py").write_text("from hdrqn_ros.nodes import common\n")
-    assert cycles(import_graph(pkg)) == [["hdrqn_ros.nodes.acting", "hdrqn_ros.nodes.common"]]
+    (pkg / "nodes" / "process.py").write_text("def make():\n    from hdrqn_ros.nodes import acting\n")
+    (pkg / "nodes" / "acting.py").write_text("from hdrqn_ros.nodes.process import make\n")
+    (pkg / "nodes" / "other.py").write_text("from hdrqn_ros.nodes import process\n")
+    assert cycles(import_graph(pkg)) == [["hdrqn_ros.nodes.acting", "hdrqn_ros.nodes.process"]]

@@ -1,25 +1,27 @@
 """Launch files and ROS 2 params files: what can be checked without ROS, and a real test with it.
 
 Without ROS: the launch files compile; every ``Node(executable=...)`` is a console script
-of ``setup.py``; the params YAMLs load with the middleware's parser and name only
-parameters their nodes declare, with the types the nodes expect. With ROS 2 (``launch`` importable): the
-real ``generate_launch_description()`` is expanded in a ``LaunchService``'s context.
+of ``setup.py``. With rclpy (the nodes' parameter tables): the params YAMLs name only
+parameters their nodes declare, with the types the nodes expect. With ROS 2 (``launch``
+importable): the real ``generate_launch_description()`` is expanded in a ``LaunchService``'s
+context.
 """
 from __future__ import annotations
 
 import ast
+import functools
+import importlib
 import importlib.util
 import py_compile
 from pathlib import Path
 
 import pytest
+import yaml
 
-from hdrqn_ros.agents.algorithms import ALGO_SPECS
-from hdrqn_ros.middleware.port import ParameterError
-from hdrqn_ros.middleware.ros_args import load_params_file
-from hdrqn_ros.nodes import critic, environment, learner, loopback_robot, nav, robot_environment
-from hdrqn_ros.nodes.common import ENV_DEFAULTS
-from hdrqn_ros.nodes.controllers import CONTROLLER_PARAMETERS
+from hdrqn_ros.agents.specs import ALGO_SPECS
+from hdrqn_ros.nodes.executables import NODES
+
+from conftest import NEEDS_RCLPY
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = ROOT / "launch" / "train.launch.py"
@@ -30,18 +32,9 @@ TRAIN_YAML = ROOT / "config" / "ros" / "train.yaml"
 RUN_POLICY_YAML = ROOT / "config" / "ros" / "run_policy.yaml"
 PARAM_FILES = (TRAIN_YAML, RUN_POLICY_YAML)
 
-GLOBAL_PARAMETERS = {"dds_interface": "", "ros_domain_id": 0, "max_message_bytes": 0, "use_sim_time": False}
-"""Read by the middleware (Cyclone backend) or by rclpy itself, allowed on every node."""
-NODE_PARAMETERS = {
-    "environment": environment.PARAMETERS,
-    "critic": critic.PARAMETERS,
-    "robot_environment": robot_environment.PARAMETERS,
-    "loopback_robot": loopback_robot.PARAMETERS,
-    # the Nav2 adapter parameters are being wired into the controllers (hdrqn_ros/nodes/nav.py)
-    "meta_controller": {**CONTROLLER_PARAMETERS, **nav.META_PARAMETERS},
-    "sub_controller": {**CONTROLLER_PARAMETERS, **nav.SUB_PARAMETERS},
-    "learner": learner.PARAMETERS,
-}
+GRAPH_NODES = ("environment", "critic", "robot_environment", "loopback_robot", "meta_controller", "sub_controller",
+               "learner")
+"""The executables the launch files start."""
 HIERARCHICAL_NODES = ("environment", "critic", "meta_controller", "sub_controller")
 FLAT_NODES = ("environment", "sub_controller")
 
@@ -57,19 +50,50 @@ def console_scripts() -> set[str]:
     raise AssertionError("setup.py declares no console_scripts")
 
 
-def check_value(where: str, name: str, value, default) -> None:
-    """``value`` has the type rclpy would accept for a parameter declared with ``default``
-    (no int for a double: rclpy refuses it, unlike the Cyclone backend)."""
+@functools.cache
+def node_tables() -> dict[str, dict]:
+    """Executable -> what it declares (its module's ``PARAMETERS``) and rclpy's own ``use_sim_time``."""
+    from hdrqn_ros.nodes.parameters import Param
+
+    rclpy_own = {"use_sim_time": Param(False, "declared by rclpy on every node")}
+    return {node: {**importlib.import_module(f"hdrqn_ros.nodes.{node}").PARAMETERS, **rclpy_own}
+            for node in GRAPH_NODES}
+
+
+def shared_table() -> dict:
+    """What a ``/**`` entry may set: the graph's shared parameters and rclpy's own."""
+    from hdrqn_ros.nodes.graph_parameters import ENV_PARAMETERS, MAX_MESSAGE_BYTES
+
+    return {**ENV_PARAMETERS, **MAX_MESSAGE_BYTES, "use_sim_time": node_tables()["critic"]["use_sim_time"]}
+
+
+def params_entries(path: Path) -> list[tuple[str, str, object]]:
+    """(node pattern, parameter, value) of each parameter of a ROS 2 params file (plain YAML:
+    ``pattern: {ros__parameters: {name: value}}``)."""
+    doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+    assert isinstance(doc, dict), f"{path.name}: not a mapping of node patterns"
+    entries = []
+    for pattern, section in doc.items():
+        assert isinstance(section, dict) and set(section) == {"ros__parameters"}, \
+            f"{path.name} [{pattern}]: expected only ros__parameters"
+        entries += [(pattern, name, value) for name, value in section["ros__parameters"].items()]
+    return entries
+
+
+def check_value(where: str, name: str, value, param) -> None:
+    """``value`` has the type rclpy accepts for ``param`` (no int for a double) and keeps its rules."""
+    default = param.default
     if isinstance(default, list):
         assert isinstance(value, (list, tuple)) and value, f"{where}: {name} must be a non-empty list, got {value!r}"
         assert all(type(v) is type(default[0]) for v in value), f"{where}: {name} items must be like {default!r}"
     else:
         assert type(value) is type(default), \
             f"{where}: {name} = {value!r} ({type(value).__name__}) but the node declares {type(default).__name__}"
+    assert param.refusal(name, value) is None, f"{where}: {param.refusal(name, value)}"
 
 
 def check_parameters(where: str, node: str, params: dict) -> None:
-    allowed = {**NODE_PARAMETERS[node], **GLOBAL_PARAMETERS}
+    allowed = node_tables()[node]
     for name, value in params.items():
         assert name in allowed, f"{where}: {node} has no parameter {name!r} (it declares {sorted(allowed)})"
         check_value(where, name, value, allowed[name])
@@ -81,44 +105,92 @@ def test_launch_file_compiles(path, tmp_path):
     py_compile.compile(str(path), cfile=str(tmp_path / "out.pyc"), doraise=True)
 
 
+def loop_values(tree: ast.AST, call: ast.Call, variable: str) -> set:
+    """The literal values ``variable`` takes in the ``for`` loops around ``call``: ``for
+    variable in [...]`` or ``for variable, ... in [(..., ...), ...]``, the list written in
+    the loop or assigned to a name."""
+    assigned = {target.id: node.value for node in ast.walk(tree) if isinstance(node, ast.Assign)
+                for target in node.targets if isinstance(target, ast.Name)}
+    values = set()
+    for loop in ast.walk(tree):
+        if not isinstance(loop, ast.For) or call not in ast.walk(loop):
+            continue
+        unpacked = isinstance(loop.target, ast.Tuple)
+        names = [getattr(t, "id", None) for t in (loop.target.elts if unpacked else [loop.target])]
+        if variable not in names:
+            continue
+        items = assigned.get(loop.iter.id) if isinstance(loop.iter, ast.Name) else loop.iter
+        assert isinstance(items, (ast.List, ast.Tuple)), f"line {loop.lineno}: {variable} loops over no literal list"
+        for item in items.elts:
+            values.add(ast.literal_eval(item.elts[names.index(variable)] if unpacked else item))
+    return values
+
+
+def started_executables(path: Path) -> list[tuple[int, str]]:
+    """(line, executable) of every ``Node(...)`` of a launch file, one per value of an
+    executable given by a loop variable; its ``name=`` must be the executable's."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    found = []
+    for call in ast.walk(tree):
+        if not (isinstance(call, ast.Call) and getattr(call.func, "id", None) == "Node"):
+            continue
+        kwargs = {k.arg: k.value for k in call.keywords}
+        where = f"{path.name}:{call.lineno}"
+        assert "executable" in kwargs, f"{where}: Node without executable="
+        exe, name = kwargs["executable"], kwargs.get("name")
+        if isinstance(exe, ast.Constant):
+            assert isinstance(name, ast.Constant) and name.value == exe.value, f"{where}: node name = executable name"
+            found.append((call.lineno, exe.value))
+            continue
+        assert isinstance(exe, ast.Name), f"{where}: executable must be a literal string or a loop variable"
+        assert isinstance(name, ast.Name) and name.id == exe.id, f"{where}: node name = executable name"
+        values = loop_values(tree, call, exe.id)
+        assert values, f"{where}: executable {exe.id} is no variable of a loop over literals"
+        found += [(call.lineno, value) for value in sorted(values)]
+    return found
+
+
 @pytest.mark.parametrize("path", LAUNCH_FILES, ids=lambda p: p.name)
 def test_every_executable_is_a_console_script(path):
     scripts = console_scripts()
-    calls = [n for n in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
-             if isinstance(n, ast.Call) and getattr(n.func, "id", None) == "Node"]
-    assert calls, f"{path.name} starts no Node"
-    for call in calls:
-        kwargs = {k.arg: k.value for k in call.keywords}
-        assert "executable" in kwargs, f"{path.name}:{call.lineno}: Node without executable="
-        exe = kwargs["executable"]
-        assert isinstance(exe, ast.Constant), f"{path.name}:{call.lineno}: executable must be a literal string"
-        assert exe.value in scripts, f"{path.name}:{call.lineno}: {exe.value!r} is not a console script {scripts}"
-        assert exe.value in NODE_PARAMETERS
-        name = kwargs.get("name")
-        assert isinstance(name, ast.Constant) and name.value == exe.value, "node name = executable name"
+    started = started_executables(path)
+    assert started, f"{path.name} starts no Node"
+    for line, exe in started:
+        assert exe in scripts, f"{path.name}:{line}: {exe!r} is not a console script {scripts}"
+        assert exe in GRAPH_NODES and exe in NODES, f"{path.name}:{line}: {exe!r} is not a graph node"
 
 
+def test_train_launch_starts_each_graph_node(tmp_path):
+    """The executables of train.launch.py, read through its loop over node names; a typo in
+    one is caught."""
+    assert sorted({exe for _, exe in started_executables(TRAIN)}) == sorted(HIERARCHICAL_NODES + ("learner",))
+    typo = tmp_path / "train.launch.py"
+    typo.write_text(TRAIN.read_text(encoding="utf-8").replace('("critic", group)', '("critc", group)'))
+    assert "critc" in {exe for _, exe in started_executables(typo)}
+
+
+@NEEDS_RCLPY
 @pytest.mark.parametrize("path", PARAM_FILES, ids=lambda p: p.name)
 def test_params_file_names_declared_parameters(path):
-    entries = load_params_file(path)
+    entries = params_entries(path)
     assert entries
     for pattern, name, value in entries:
         where = f"{path.name} [{pattern}]"
         if pattern == "/**":
-            allowed = {**ENV_DEFAULTS, **GLOBAL_PARAMETERS}  # every node declares ENV_DEFAULTS
-            assert name in allowed, f"{where}: {name!r} is not a parameter every node declares"
+            allowed = shared_table()
+            assert name in allowed, f"{where}: {name!r} is not a parameter the graph's nodes share"
             check_value(where, name, value, allowed[name])
             continue
         node = pattern.rsplit("/", 1)[-1]
-        assert node in NODE_PARAMETERS, f"{where}: unknown node {node!r}"
+        assert node in GRAPH_NODES, f"{where}: unknown node {node!r}"
         assert pattern in (f"/**/{node}", f"/{node}"), \
             f"{where}: use /**/{node} (any namespace) or /{node}; a bare name matches only the root namespace in rcl"
         check_parameters(where, node, {name: value})
 
 
 def test_params_files_agree_with_the_nodes_modes():
-    train = {(p, n): v for p, n, v in load_params_file(TRAIN_YAML)}
-    policy = {(p, n): v for p, n, v in load_params_file(RUN_POLICY_YAML)}
+    train = {(p, n): v for p, n, v in params_entries(TRAIN_YAML)}
+    policy = {(p, n): v for p, n, v in params_entries(RUN_POLICY_YAML)}
     assert train[("/**/environment", "wait_for_learner")] is True
     assert policy[("/**/environment", "wait_for_learner")] is False
     assert policy[("/**/sub_controller", "epsilon")] == 0.0
@@ -126,6 +198,7 @@ def test_params_files_agree_with_the_nodes_modes():
     assert ("/learner", "groups") not in train and ("/learner", "resume") not in train  # set by the launch file
 
 
+@NEEDS_RCLPY
 @pytest.mark.parametrize("mode", ["sub-drives", "meta-only"])
 def test_robot_graph_parameters_are_declared(mode):
     """What ``hdrqn robot`` and robot.launch.py give each node is what it declares, typed alike."""
@@ -133,7 +206,7 @@ def test_robot_graph_parameters_are_declared(mode):
 
     params = robot_parameters(RobotRun("hdrqn-v2", "hdrqn/GridWorld-2Goals-v0", "5", checkpoint="c.pt", mode=mode))
     for name, value in params.pop("/**").items():
-        check_value("/**", name, value, {**ENV_DEFAULTS, **GLOBAL_PARAMETERS}[name])
+        check_value("/**", name, value, shared_table()[name])
     for node, values in params.items():
         check_parameters(f"robot graph [{node}]", node, values)
 
@@ -143,22 +216,14 @@ def test_launch_constants_match_the_code():
 
     assert set(launch_support.ALGOS) == set(ALGO_SPECS)
     assert set(launch_support.HIERARCHICAL_ALGOS) == {a for a, s in ALGO_SPECS.items() if s.hierarchical}
-    assert launch_support.DEFAULT_ALGO == ENV_DEFAULTS["algo"]
 
 
-def test_params_file_as_launch_ros_writes_it_loads(tmp_path):
-    """launch_ros dumps a Node's dict parameters with ``yaml.dump``, so lists become
-    ``!!python/tuple`` (rcl reads them as sequences); our parser must too, and still refuse
-    every other Python tag."""
-    import yaml
+@NEEDS_RCLPY
+def test_the_launch_default_algo_is_the_nodes():
+    from hdrqn_ros import launch_support
+    from hdrqn_ros.nodes.graph_parameters import ENV_PARAMETERS
 
-    path = tmp_path / "launch_params_x"
-    path.write_text(yaml.dump({"/learner": {"ros__parameters": {"groups": ("/group0", "/group1"), "resume": True}}}))
-    assert "!!python/tuple" in path.read_text()
-    assert ("/learner", "groups", ["/group0", "/group1"]) in load_params_file(path)
-    path.write_text("/learner:\n  ros__parameters:\n    x: !!python/object/apply:os.getcwd []\n")
-    with pytest.raises(ParameterError, match="not valid YAML"):
-        load_params_file(path)
+    assert launch_support.DEFAULT_ALGO == ENV_PARAMETERS["algo"].default
 
 
 # -- with ROS 2 (skipped where launch / launch_ros are not installed) --------------------------------

@@ -14,33 +14,36 @@ from pathlib import Path
 
 import pytest
 
+from hdrqn_ros.nodes.ros_packages import ROS_PACKAGES
+
 PACKAGE = Path(__file__).resolve().parents[1] / "hdrqn_ros"
 
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
-    ("base", ("hdrqn_ros.throttle", "hdrqn_ros.yaml_files", "hdrqn_ros.hashing", "hdrqn_ros.extras")),
+    ("base", ("hdrqn_ros.throttle", "hdrqn_ros.yaml_files", "hdrqn_ros.hashing", "hdrqn_ros.extras", "hdrqn_ros.dds")),
     ("envs and critic", ("hdrqn_ros.envs", "hdrqn_ros.critic", "hdrqn_ros.__init__")),
     ("robot task and kinematics", ("hdrqn_ros.robot",)),
+    ("algorithm table", ("hdrqn_ros.agents.specs",)),
     ("torch-free policy", ("hdrqn_ros.deploy",)),
     ("config", ("hdrqn_ros.config",)),
     ("agents", ("hdrqn_ros.agents",)),
     ("training", ("hdrqn_ros.training",)),
-    ("middleware port", ("hdrqn_ros.middleware.port", "hdrqn_ros.middleware.arrays")),
     ("protocol", ("hdrqn_ros.protocol",)),
     ("recording", ("hdrqn_ros.recording",)),
-    ("middleware backends", ("hdrqn_ros.middleware",)),
     ("nodes", ("hdrqn_ros.nodes",)),
     ("launch and cli", ("hdrqn_ros.graph", "hdrqn_ros.robot_graph", "hdrqn_ros.supervisor", "hdrqn_ros.launch_support",
                         "hdrqn_ros.experiments", "hdrqn_ros.cluster", "hdrqn_ros.cli")),
 ]
-"""Lowest first. A module may import from its own layer and the layers below. The port
-(``Node``/``Publisher``/``QoS``, array helpers: an interface, no DDS) sits below the protocol,
-which builds its messages through a port ``Node``; the backends that implement the port sit
-above recording. ``hdrqn_ros/__init__.py`` only registers the gymnasium ids. The torch-free
-policy (``deploy``: numpy and onnxruntime) stands on the domains' constants only."""
+"""Lowest first. A module may import from its own layer and the layers below. ``dds`` (the
+RMW's network defaults, set before ``rclpy.init``) is a base helper that imports no ROS.
+The algorithm table (``agents.specs``, torch-free) sits below the torch-free policy and the
+config, which both read it. The protocol builds its messages through a factory it is given
+(rclpy's in the nodes, the ``rosbags`` type store's in bags), so it and recording import no
+ROS; only the nodes and what starts them use rclpy. ``hdrqn_ros/__init__.py`` only registers
+the gymnasium ids."""
 
 CORE_TOP = "recording"
 """This layer and those below import no ROS or DDS library (:data:`MIDDLEWARE_LIBRARIES`)."""
-MIDDLEWARE_LIBRARIES = ("rclpy", "cyclonedds", "rosidl_runtime_py", "std_msgs", "sensor_msgs", "rmw")
+MIDDLEWARE_LIBRARIES = (*ROS_PACKAGES, "rosidl_runtime_py", "rmw", "launch", "launch_ros")
 
 
 def layer_of(module: str) -> int:
@@ -114,21 +117,25 @@ def test_every_module_has_a_layer():
 
 def test_the_check_catches_an_upward_import(tmp_path):
     """The checker on a made-up package: an agents module importing a node, a training module
-    importing rclpy inside a function, and a relative import up from the protocol."""
+    importing rclpy inside a function, a relative import up from the protocol, the protocol
+    importing a message package, and ``dds`` importing rclpy."""
     pkg = tmp_path / "hdrqn_ros"
-    for sub in ("agents", "training", "protocol", "nodes"):
+    for sub in ("agents", "training", "protocol", "nodes", "dds"):
         (pkg / sub).mkdir(parents=True)
         (pkg / sub / "__init__.py").write_text("")
     (pkg / "__init__.py").write_text("")
-    (pkg / "agents" / "policy.py").write_text("from hdrqn_ros.nodes.common import run_node\n")
+    (pkg / "agents" / "policy.py").write_text("from hdrqn_ros.nodes.process import run_node\n")
     (pkg / "training" / "loop.py").write_text("def f():\n    import rclpy\n")
-    (pkg / "protocol" / "wire.py").write_text("from ..nodes import common\n")
-    (pkg / "nodes" / "common.py").write_text("from hdrqn_ros.agents import policy\n")
+    (pkg / "protocol" / "wire.py").write_text("from ..nodes import process\nfrom std_msgs.msg import Header\n")
+    (pkg / "nodes" / "process.py").write_text("import rclpy\nfrom hdrqn_ros.agents import policy\n")
+    (pkg / "dds" / "__init__.py").write_text("from rclpy.qos import QoSProfile\n")
     found = violations(pkg)
-    assert len(found) == 3, found
-    assert any("agents/policy.py:1" in v and "hdrqn_ros.nodes.common (nodes)" in v for v in found)
+    assert len(found) == 5, found
+    assert any("agents/policy.py:1" in v and "hdrqn_ros.nodes.process (nodes)" in v for v in found)
     assert any("training/loop.py:2" in v and "middleware library rclpy" in v for v in found)
     assert any("protocol/wire.py:1" in v and "hdrqn_ros.nodes" in v for v in found)
+    assert any("protocol/wire.py:2" in v and "middleware library std_msgs.msg" in v for v in found)
+    assert any("dds/__init__.py:1" in v and "hdrqn_ros.dds (base)" in v and "rclpy.qos" in v for v in found)
 
 
 def test_unknown_module_is_named():

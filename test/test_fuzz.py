@@ -775,6 +775,7 @@ def declared_as(value, default) -> bool:
 @example(argv=[], params="/**:\n  ros__parameters:\n    seed: 2001-13-01\n", with_file=True, node="learner", ns="/")
 @example(argv=["-p", "max_message_bytes:=[1]"], params="", with_file=False, node="learner", ns="/")
 @example(argv=["-p", "epsilon:=.nan"], params="", with_file=False, node="sub_controller", ns="/group0")
+@example(argv=["-p", "view:=²"], params="", with_file=False, node="learner", ns="/")
 def test_ros_args_and_params_files_give_parameters_or_errors(argv, params, with_file, node, ns):
     """``--ros-args`` and a random parameters file, as a node process starts (``run_node``):
     ``rclpy.init`` refuses them with a ``RuntimeError`` (the node exits 2), or the node is made

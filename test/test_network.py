@@ -245,7 +245,8 @@ def test_hdrqn_up_refuses_a_bad_network_setting_up_front(tmp_path, monkeypatch, 
 @pytest.mark.parametrize("env, problem", [
     ({PROFILE_VARIABLE: "/nonexistent/profile.xml"}, "/nonexistent/profile.xml: cannot read"),
     ({INTERFACE_ENV: "no-such-if0"}, f"{INTERFACE_ENV}='no-such-if0': no IPv4 address"),
-    ({"ROS_DOMAIN_ID": "x"}, "ROS_DOMAIN_ID is not an integral number"),
+    ({"ROS_DOMAIN_ID": "x"}, "ROS_DOMAIN_ID must be an integer in 0..232"),
+    ({"ROS_DOMAIN_ID": "300"}, "ROS_DOMAIN_ID must be an integer in 0..232"),
 ])
 def test_a_node_exits_2_naming_a_bad_network_setting(env, problem):
     """A node process (``ros2 run hdrqn_ros critic``) with a setting it cannot use: one

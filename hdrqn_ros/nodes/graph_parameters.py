@@ -14,7 +14,7 @@ ENV_PARAMETERS = {
     "env": Param("hdrqn/GridWorld-2Goals-v0", "environment id (hdrqn envs lists them)",
                  choices=tuple(sorted(GRID_IDS) + sorted(MONTEZUMA_IDS))),
     "view": Param("5", "gridworld view: an odd number of cells or 'full' (a string)",
-                  check=lambda view: None if view == "full" or (view.isdigit() and int(view) % 2) else
+                  check=lambda view: None if view == "full" or odd_cells(view) else
                   f"must be an odd number of cells or 'full', got {view!r}"),
     "seed": Param(0, "seed of the environments and of the controllers' exploration"),
 }
@@ -23,6 +23,11 @@ NUM_ENVS = {"num_envs": Param(1, "environments the environment node steps as one
                                  "a group)", low=1, high=MAX_ENVS)}
 MAX_MESSAGE_BYTES = {"max_message_bytes": Param(DEFAULT_MAX_MESSAGE_BYTES, "received samples larger than this "
                                                 "(bytes) are dropped with a warning", positive=True)}
+
+
+def odd_cells(view: str) -> bool:
+    """Whether ``view`` is an odd number of cells written in ASCII digits ("5", not "full" or "²")."""
+    return view.isascii() and view.isdigit() and int(view) % 2 == 1
 
 
 def env_kwargs(env_id: str, view: str) -> dict:

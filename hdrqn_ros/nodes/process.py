@@ -101,10 +101,11 @@ def run_node(make: Callable[..., Node], argv: list[str] | None = None,
     exit_code = 1  # until the node says otherwise: an exception is on its way out
     try:
         network = apply_rmw_network_defaults(os.environ.get(INTERFACE_ENV) or None)
+        check_domain_id(os.environ.get("ROS_DOMAIN_ID", ""))
         context = Context()
         try:
             rclpy.init(args=argv, context=context, signal_handler_options=SignalHandlerOptions.NO)
-        except RuntimeError as exc:  # rcl's argument errors
+        except (RuntimeError, UnicodeError) as exc:  # rcl's argument errors
             raise NodeConfigError(f"rclpy.init rejected the ROS arguments: {exc}") from None
         node = make(context=context)
         if managed and not isinstance(node, LifecycleNode):
@@ -134,6 +135,17 @@ def run_node(make: Callable[..., Node], argv: list[str] | None = None,
         if dumps_stacks:
             faulthandler.unregister(STACK_DUMP_SIGNAL)
     return exit_code
+
+
+MAX_DOMAIN_ID = 232
+"""The largest DDS domain id ROS 2 allows on Linux (its port arithmetic; ROS 2's docs)."""
+
+
+def check_domain_id(text: str) -> None:
+    """``$ROS_DOMAIN_ID`` ("" for unset) is an integer in 0..:data:`MAX_DOMAIN_ID`, else
+    :class:`NodeConfigError` naming it (rcl would fail later with a Fast DDS port error)."""
+    if text.strip() and not (text.strip().isdigit() and int(text) <= MAX_DOMAIN_ID):
+        raise NodeConfigError(f"ROS_DOMAIN_ID must be an integer in 0..{MAX_DOMAIN_ID}, got {text!r}")
 
 
 def _bring_up(node: LifecycleNode) -> None:

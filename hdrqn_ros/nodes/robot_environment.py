@@ -39,7 +39,7 @@ from visualization_msgs.msg import MarkerArray
 from hdrqn_ros.envs.gridworld import GOAL_NAMES
 from hdrqn_ros.nodes import nav
 from hdrqn_ros.nodes.diagnostics import OK, WARN, Diagnostics
-from hdrqn_ros.nodes.graph_parameters import ENV_PARAMETERS, MAX_MESSAGE_BYTES, domain_sizes
+from hdrqn_ros.nodes.graph_parameters import ENV_PARAMETERS, MAX_MESSAGE_BYTES, domain_sizes, odd_cells
 from hdrqn_ros.nodes.lifecycle import ManagedNode
 from hdrqn_ros.nodes.node_logger import python_logger
 from hdrqn_ros.nodes.parameters import NodeConfigError, Param
@@ -62,7 +62,7 @@ WAIT_REPORTED_S, WAIT_REPEATED_S = 2.0, 10.0
 
 
 def _odd_cells(view: str) -> str | None:
-    return None if view.isdigit() and int(view) % 2 else \
+    return None if odd_cells(view) else \
         f"the robot's observation needs an odd number of cells (no 'full' view), got {view!r}"
 
 

@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import array
 import importlib
+import importlib.util
 import logging
 from functools import lru_cache
+from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
@@ -39,6 +41,11 @@ def interface_class(type_name: str) -> type:
     if len(parts) != 3 or parts[1] not in ("msg", "srv", "action") or not all(parts):
         raise ValueError(f"interface type {type_name!r} is not of the form 'pkg/msg/Type'")
     package, kind, name = parts
+    spec = importlib.util.find_spec(package) if package.isidentifier() else None
+    if spec is None:
+        raise MissingRosPackage(f"ROS package {package} is not installed ({type_name}): {install_hint(package)}")
+    if not any((Path(where) / kind / "__init__.py").exists() for where in spec.submodule_search_locations or ()):
+        raise ValueError(f"unknown interface type {type_name!r}: {package} is not a ROS interface package")
     try:
         module = importlib.import_module(f"{package}.{kind}")
     except ModuleNotFoundError as exc:

@@ -19,6 +19,7 @@ from std_msgs.msg import Float64MultiArray, Int64MultiArray
 from hdrqn_ros.agents.specs import stack_subgoal
 from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.nodes.controller_node import CONTROLLER_PARAMETERS, ControllerNode
+from hdrqn_ros.nodes.graph_parameters import odd_cells
 from hdrqn_ros.nodes.costmap_controller import OBSERVATION_PARAMETERS, CostmapSubController
 from hdrqn_ros.nodes.lockstep import LockStepController
 from hdrqn_ros.nodes.nav import ActionTable, SubgoalTable
@@ -156,7 +157,7 @@ class SubControllerNode(ControllerNode):
             if num_envs != 1:
                 raise NodeConfigError(f"observation_source costmap acts for one robot: num_envs must be 1, "
                                       f"got {num_envs}")
-            if not params["view"].isdigit():
+            if not odd_cells(params["view"]):
                 raise NodeConfigError(f"observation_source costmap needs a numeric view, got {params['view']!r}")
 
     def build_parts(self) -> None:

@@ -1,6 +1,6 @@
 """A missing optional dependency (a pip extra) exits with code 2 and the command that installs
 it, for every extra: deploy (hdrqn export, hdrqn robot --policy, a node's policy:=),
-cluster (hdrqn experiment --ray), ros (--middleware rclpy). Each runs in a fresh Python
+cluster (hdrqn experiment --ray), ros (hdrqn up). Each runs in a fresh Python
 whose import of the extra's module fails, as on a machine without it."""
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ def cli(*argv: str) -> str:
     ("onnx", ["export", "--checkpoint", "x.pt", "--out", "policy", "--no-verify"], "deploy"),
     ("onnxruntime", ["robot", "--policy", "policy"], "deploy"),
     ("ray", ["experiment", "exp1", "--ray", "--episodes", "1"], "cluster"),
-    ("rclpy", ["up", "--middleware", "rclpy", "--out", "run"], "ros"),
+    ("rclpy", ["up", "--out", "run"], "ros"),
 ])
 def test_cli_names_the_missing_extra(tmp_path, module, argv, extra):
     result = run_without(module, f"import os; os.chdir({str(tmp_path)!r})\n" + cli(*argv))

@@ -1,15 +1,20 @@
-"""The robot-side task and the robot graph's settings, without ROS: ordered visits
+"""The robot-side task and the robot graph's settings, without a ROS graph: ordered visits
 (hdrqn_ros.robot.ordered_visits), the costmap drawing a robot step needs (places, the agent
-off-centre, unknown as outside), and the parameters of ``hdrqn robot`` / robot.launch.py."""
+off-centre, unknown as outside; on rclpy's messages), and the parameters of ``hdrqn robot`` /
+robot.launch.py."""
+import array
+
 import numpy as np
 import pytest
 
 from hdrqn_ros.envs.domain import NO_SUBGOAL
 from hdrqn_ros.envs.gridworld import AGENT, GOAL0, OUTSIDE, PALETTE, GridWorldBatch
-from hdrqn_ros.middleware.messages import message_class
+from hdrqn_ros.nodes.ros_messages import interface_class as message_class
 from hdrqn_ros.nodes.nav import NavConfigError, SubgoalTable, costmap_to_observation, robot_pose
 from hdrqn_ros.robot.ordered_visits import OrderedVisits
 from hdrqn_ros.robot_graph import RobotRun, robot_parameters
+
+from conftest import NEEDS_RCLPY
 
 PLACES = [(1.0, 1.0), (2.0, 1.0), (2.0, 2.0)]
 
@@ -61,10 +66,11 @@ def grid(cost: np.ndarray, res=0.05, origin=(0.0, 0.0)):
     msg = message_class("nav_msgs/msg/OccupancyGrid")()
     msg.info.width, msg.info.height, msg.info.resolution = cost.shape[1], cost.shape[0], res
     msg.info.origin.position.x, msg.info.origin.position.y = origin
-    msg.data = cost.astype(np.int8).reshape(-1)
+    msg.data = array.array("b", cost.astype(np.int8).tobytes())
     return msg
 
 
+@NEEDS_RCLPY
 def test_subgoal_image_draws_the_agent_where_it_is_and_skips_visited_places():
     """A window centred on a place: the place in its colour, the robot at its own cell, a
     visited place (None) not drawn; cells beyond the grid black with unknown='outside'."""
@@ -81,6 +87,7 @@ def test_subgoal_image_draws_the_agent_where_it_is_and_skips_visited_places():
         costmap_to_observation(msg, unknown="free")
 
 
+@NEEDS_RCLPY
 def test_border_observation_matches_the_simulator_with_outside_black():
     """At the map's edge the simulator draws cells beyond the map black: so does a costmap
     of the map alone (unknown beyond it) with unknown='outside'."""
@@ -92,6 +99,7 @@ def test_border_observation_matches_the_simulator_with_outside_black():
     np.testing.assert_array_equal(ours, env.render_obs()[0])
 
 
+@NEEDS_RCLPY
 def test_robot_pose_reads_each_pose_type_and_refuses_non_finite():
     odom = message_class("nav_msgs/msg/Odometry")()
     odom.pose.pose.position.x, odom.pose.pose.orientation.z, odom.pose.pose.orientation.w = 1.5, 1.0, 0.0
@@ -105,6 +113,7 @@ def test_robot_pose_reads_each_pose_type_and_refuses_non_finite():
         robot_pose(stamped)
 
 
+@NEEDS_RCLPY
 def test_places_from_a_pose_array():
     msg = message_class("geometry_msgs/msg/PoseArray")()
     msg.header.frame_id = "map"

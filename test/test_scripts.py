@@ -91,15 +91,15 @@ def test_a_module_that_starts_nodes_must_be_listed_to_run_one_at_a_time(tmp_path
     (tmp_path / "test").mkdir()
     for name in ("setup.cfg", "test/conftest.py"):
         (tmp_path / name).write_text((ROOT / name).read_text())
-    (tmp_path / "test" / "test_graph.py").write_text("def test_listed(backend):\n    pass\n")
+    (tmp_path / "test" / "test_graph.py").write_text("def test_listed(domain):\n    pass\n")
 
     def collect():
         return subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider", "-m",
                                "processes", "test"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
 
     listed = collect()
-    assert listed.returncode == 0 and "test_listed[cyclone]" in listed.stdout, listed.stdout + listed.stderr
-    (tmp_path / "test" / "test_new_nodes.py").write_text("def test_unlisted(backend):\n    pass\n")
+    assert listed.returncode == 0 and "test_graph.py::test_listed" in listed.stdout, listed.stdout + listed.stderr
+    (tmp_path / "test" / "test_new_nodes.py").write_text("def test_unlisted(domain):\n    pass\n")
     unlisted = collect()
     assert unlisted.returncode == 4, unlisted.stdout + unlisted.stderr  # a usage error: nothing runs
     assert "add test_new_nodes to PROCESS_MODULES" in unlisted.stdout + unlisted.stderr

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib
 import sys
+from functools import partial
 
 from hdrqn_ros.nodes.ros_packages import ROS_PACKAGES, install_hint
 
@@ -40,33 +41,12 @@ def run(executable: str) -> int:
     return entry()
 
 
-def environment() -> int:
-    return run("environment")
-
-
-def critic() -> int:
-    return run("critic")
-
-
-def meta_controller() -> int:
-    return run("meta_controller")
-
-
-def sub_controller() -> int:
-    return run("sub_controller")
-
-
-def learner() -> int:
-    return run("learner")
-
-
-def player() -> int:
-    return run("player")
-
-
-def robot_environment() -> int:
-    return run("robot_environment")
-
-
-def loopback_robot() -> int:
-    return run("loopback_robot")
+# the console scripts of setup.py, one per executable
+environment = partial(run, "environment")
+critic = partial(run, "critic")
+meta_controller = partial(run, "meta_controller")
+sub_controller = partial(run, "sub_controller")
+learner = partial(run, "learner")
+player = partial(run, "player")
+robot_environment = partial(run, "robot_environment")
+loopback_robot = partial(run, "loopback_robot")

@@ -125,7 +125,8 @@ def check_transitions_match_env(transitions: list[dict], env_rows: list[dict]) -
 def test_payload_bytes_are_the_cdr_rosbags_reads_and_writes(domain):
     """Bytes taken off a real DDS reader, per published type: rosbags (the bag code's type
     store) decodes them, and rclpy decodes rosbags' encoding back to the message sent. Fast
-    CDR leaves alignment padding unset, so the bytes compare after a decode and a re-encode."""
+    CDR leaves alignment padding unset (even its own re-encoding of one message may differ
+    there), so messages are compared decoded, never as bytes."""
     mw = ros_probe()
     try:
         node = mw.create_node("probe")
@@ -140,7 +141,7 @@ def test_payload_bytes_are_the_cdr_rosbags_reads_and_writes(domain):
             theirs = bytes(TYPESTORE.serialize_cdr(TYPESTORE.deserialize_cdr(sample, type_name), type_name))
             assert len(sample) - 4 < len(theirs) <= len(sample), type_name
             assert from_cdr(type_name, theirs) == msg, type_name
-            assert node.to_cdr(from_cdr(type_name, sample)) == node.to_cdr(msg), type_name
+            assert from_cdr(type_name, sample) == msg, type_name
     finally:
         mw.shutdown()
 

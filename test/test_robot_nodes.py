@@ -384,6 +384,7 @@ def test_the_shipped_trained_policy_visits_the_goals_in_order(tmp_path, domain):
                                                                                    ([0, 1], True, 9)]
 
 
+@pytest.mark.flaky(reruns=1)  # open: under a CPU hog some recorded episodes come out incomplete (docs/reliability.md)
 def test_robot_episodes_recorded_then_trained_on_offline(tmp_path, domain):
     """``hdrqn robot --record``: a learner node records every robot episode to a bag, which
     ``hdrqn train --from-bag`` trains on."""

@@ -245,6 +245,15 @@ def _gathered_run(work: Path, payload: bytes | None) -> Path:
     return run_dir
 
 
+def _line_start(log) -> bytes:
+    """``b"\\n"`` when the log (opened ``ab+``) ends inside a line: a killed attempt's
+    block-buffered output stops wherever its last buffer ended."""
+    if log.seek(0, os.SEEK_END) == 0:
+        return b""
+    log.seek(-1, os.SEEK_END)
+    return b"" if log.read(1) == b"\n" else b"\n"
+
+
 def run_task(spec: RunSpec, job: dict, payload: bytes | None, board) -> dict:
     """One run in a Ray worker (``job``: see :func:`run_experiment_on_ray`). Returns
     ``{"code", "host"}`` and, when gathering, ``"tar"`` (the run directory) and ``"log"``."""
@@ -264,8 +273,8 @@ def run_task(spec: RunSpec, job: dict, payload: bytes | None, board) -> dict:
     if resume:
         argv.append("--resume")
     host = socket.gethostname()
-    with open(log_path, "ab") as log:
-        log.write(f"[hdrqn ray] {spec.name} on {host} (worker pid {os.getpid()}): {how}\n".encode())
+    with open(log_path, "ab+") as log:
+        log.write(_line_start(log) + f"[hdrqn ray] {spec.name} on {host} (worker pid {os.getpid()}): {how}\n".encode())
         log.flush()
         proc = subprocess.Popen(_child_argv(argv), stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
     try:

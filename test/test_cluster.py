@@ -254,6 +254,14 @@ def test_metrics_past_the_checkpoint_and_a_torn_line_are_trimmed(tmp_path):
     assert (tmp_path / "eval.csv").read_text() == "episode,success\n"
 
 
+def test_a_header_after_a_killed_attempts_torn_output_starts_its_own_line(tmp_path):
+    log_path = tmp_path / "run.log"
+    for content, expected in ((b"", b""), (b"episode 12 done\n", b""), (b"episode 12 do", b"\n")):
+        log_path.write_bytes(content)
+        with open(log_path, "ab+") as log:
+            assert cluster._line_start(log) == expected, content
+
+
 def test_ray_flags_and_their_errors():
     p = argparse.ArgumentParser()
     p.add_argument("name")

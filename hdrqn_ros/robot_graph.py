@@ -70,6 +70,7 @@ def robot_parameters(run: RobotRun) -> dict[str, dict]:
                            "step_period": run.step_period},
         "robot_environment": {"subgoal_poses_topic": "subgoal_poses", "new_layout_each_episode": True,
                               "pose_topic": "odom", "costmap_topic": "local_costmap/costmap",
+                              "visit_rule": "cell" if drives else "tolerance",
                               "global_costmap_topic": "global_costmap/costmap", "step_period": run.step_period,
                               "max_episodes": run.episodes, "episode_log": run.episode_log,
                               "wait_for_learner": bool(run.record)},

@@ -1,17 +1,31 @@
-"""``loopback_robot`` node: a kinematic robot on the gridworld / four-rooms map, for tests and demos.
+"""``loopback_robot`` node: a kinematic robot on the gridworld / four-rooms map that speaks as a Nav2 robot.
 
 In the spirit of Nav2's ``nav2_loopback_sim`` (which stands in for Gazebo in Nav2's own
-tests): no physics, only kinematics (:class:`~hdrqn_ros.robot.loopback_world.LoopbackWorld`).
-It integrates ``cmd_vel`` (Twist or TwistStamped; each command is held for
-``cmd_vel_timeout`` simulated seconds, like Nav2's velocity smoother deadman; walls stop
-the robot), drives to each ``goal_pose`` along a shortest free path at ``nav_speed`` (a
-navigator stand-in, not Nav2's planners), and publishes what a Nav2 robot offers:
-``odom`` (nav_msgs/Odometry), a rolling ``local_costmap/costmap`` and a
-``global_costmap/costmap`` (OccupancyGrid with Nav2's cost values 0 / 100 / -1 and QoS:
-reliable, transient local), and ``/clock``. Each episode's layout is the simulator's for
-the same ``seed`` (fires left out); its places go out as a latched
-``geometry_msgs/PoseArray`` on ``subgoal_poses``, and a new one is drawn when the
-robot-side environment's ``env_step`` says the episode ended.
+tests): no physics, only kinematics (:class:`~hdrqn_ros.robot.loopback_world.LoopbackWorld`,
+holonomic or differential drive, starting each episode facing ``start_yaw``). It integrates
+``cmd_vel`` (Twist or TwistStamped; a command older than ``cmd_vel_timeout`` simulated
+seconds stops the robot, like the velocity smoother's ``velocity_timeout`` deadman; walls
+stop it), drives to each ``goal_pose`` along a shortest free path at ``nav_speed`` (a
+navigator stand-in, not Nav2's planners), and publishes what a Nav2 robot offers, on
+simulated time (``/clock``):
+
+* tf (``tf2_msgs/TFMessage`` on ``/tf``): ``map_frame -> odom_frame`` (AMCL's part: starts at
+  ``map_to_odom``, drifts by ``odom_error`` while the robot moves) and ``odom_frame ->
+  base_frame`` (odometry's part); composed, always the robot's true pose. With
+  ``odom_frame`` equal to ``map_frame`` there is no odometry frame: ``map -> base_link``.
+* ``odom`` (nav_msgs/Odometry, ``odom_frame``, child ``base_frame``), every tick;
+* ``amcl_pose`` (PoseWithCovarianceStamped in ``map_frame``, reliable, transient local,
+  depth 1), only as AMCL publishes it: at each episode's start (an initial pose) and when
+  odometry moved more than ``amcl_update_min_d`` or turned more than ``amcl_update_min_a``;
+* a rolling ``local_costmap/costmap`` in ``odom_frame`` and the whole map as
+  ``global_costmap/costmap`` in ``map_frame`` (OccupancyGrid: Nav2's cost values, with
+  inflation costs around the walls when ``inflation_radius`` > 0, and QoS: reliable,
+  transient local); with ``always_send_full_costmap`` false, a full local grid only when
+  its window moved, else ``map_msgs/OccupancyGridUpdate`` on ``<costmap>_updates``, as Nav2.
+
+Each episode's layout is the simulator's for the same ``seed`` (fires left out); its places
+go out as a latched ``geometry_msgs/PoseArray`` in ``map_frame`` on ``subgoal_poses``, and
+a new one is drawn when the robot-side environment's ``env_step`` says the episode ended.
 
 Simulated time runs ``real_time_factor`` times faster than the wall clock (0: as fast as it
 can); the node keeps it itself and paces it on the wall clock, with or without
@@ -20,7 +34,7 @@ the robot-side environment's first step, stops at each agent step until the agen
 it, and at the next step's time until the robot-side environment published it (as PX4's
 lockstep simulation does), so a loaded machine never changes what happens; a hold longer
 than ``lockstep_timeout`` wall seconds is logged and released. It is not a robot
-simulator: no dynamics, no sensors, no localisation error, one frame.
+simulator: no dynamics, no sensors, no localisation error.
 """
 from __future__ import annotations
 
@@ -28,8 +42,9 @@ import math
 import time
 
 import numpy as np
-from geometry_msgs.msg import (Point, Pose, PoseArray, PoseStamped, PoseWithCovariance, Quaternion, Twist,
-                               TwistStamped, TwistWithCovariance, Vector3)
+from geometry_msgs.msg import (Point, Pose, PoseArray, PoseStamped, PoseWithCovariance, PoseWithCovarianceStamped,
+                               Quaternion, Transform, TransformStamped, Twist, TwistStamped, TwistWithCovariance,
+                               Vector3)
 from nav_msgs.msg import MapMetaData, OccupancyGrid, Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -40,36 +55,71 @@ from std_msgs.msg import Float64MultiArray, Header, Int64MultiArray
 from hdrqn_ros.envs.registration import GRID_IDS
 from hdrqn_ros.nodes.graph_parameters import MAX_MESSAGE_BYTES
 from hdrqn_ros.nodes.node_logger import python_logger
-from hdrqn_ros.nodes.parameters import Param, declare_parameters
+from hdrqn_ros.nodes.parameters import NodeConfigError, Param, declare_parameters
 from hdrqn_ros.nodes.process import run_node
-from hdrqn_ros.nodes.qos import DEFAULT_QOS, LATCHED_QOS, STEP_QOS
-from hdrqn_ros.nodes.ros_messages import bounded_subscription, pack
+from hdrqn_ros.nodes.qos import DEFAULT_QOS, LATCHED_QOS, STEP_QOS, keep_last
+from hdrqn_ros.nodes.ros_messages import bounded_subscription, interface_class, pack
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.follower import done
-from hdrqn_ros.robot.loopback_world import Costmap, LoopbackWorld
+from hdrqn_ros.robot.loopback_world import AmclUpdates, Costmap, LoopbackWorld
 from hdrqn_ros.throttle import Throttle
 
 LOCKSTEP_MODES = ("off", "action", "cmd_vel")
 """``off``; hold the clock until the sub-controller's ``action`` for the step; or until a
 velocity command after the step (``cmd_vel``)."""
+DRIVES = ("holonomic", "diff")
+TF_QOS = keep_last(100)
+"""``/tf`` as tf2_ros's broadcaster offers it: reliable, volatile, keep-last 100."""
+AMCL_COVARIANCE = [0.0025 if i in (0, 7) else 0.0007 if i == 35 else 0.0 for i in range(36)]
+"""``/amcl_pose``'s covariance: 5 cm in x and y, 1.5 degrees in yaw (a localised robot)."""
+
+
+def _triple(value) -> str | None:
+    return None if len(value) == 3 else f"must be [x, y, yaw] (m, m, rad), got {list(value)!r}"
+
+
+def _pair(value) -> str | None:
+    if len(value) != 2:
+        return f"must be [distance, rotation], got {list(value)!r}"
+    return None if all(-1 < v < 1 for v in value) else f"must be relative errors in (-1, 1), got {list(value)!r}"
+
+
 PARAMETERS = {
     "env": Param("hdrqn/GridWorld-2Goals-v0", "the map: a gridworld or four-rooms environment id",
                  choices=tuple(sorted(GRID_IDS))),
     "seed": Param(0, "the layouts: the simulator's for this seed, without fire", low=0, high=2**63 - 1),
-    "frame_id": Param("map", "the one frame of everything published"),
+    "map_frame": Param("map", "the global frame: places, poses, global costmap, amcl_pose"),
+    "odom_frame": Param("map", "odometry's frame (odom, local costmap; Nav2: odom); map_frame: none, odometry in "
+                               "the map"),
+    "base_frame": Param("base_link", "the robot's frame (odom's child_frame_id, tf's last link)"),
+    "map_to_odom": Param([0.0, 0.0, 0.0], "map -> odom at the start, [x, y, yaw] (m, m, rad)", check=_triple),
+    "odom_error": Param([0.0, 0.0], "odometry's relative error [distance, rotation]: map -> odom drifts while the "
+                                    "robot moves", check=_pair),
+    "publish_tf": Param(True, "publish tf on /tf (tf2_msgs/TFMessage)"),
     "tick": Param(0.1, "simulated seconds per integration step", positive=True),
     "real_time_factor": Param(20.0, "simulated seconds per wall second (0: as fast as possible)", low=0.0, high=1e6),
-    "holonomic": Param(True, "false: differential drive (linear.y ignored)"),
+    "drive": Param("holonomic", "holonomic, or differential drive (diff: linear.y ignored)", choices=DRIVES),
+    "start_yaw": Param(0.0, "the robot's yaw at each episode's start (rad, map frame)", low=-math.pi, high=math.pi),
     "cmd_vel_topic": Param("cmd_vel", "velocity commands in"),
     "cmd_vel_stamped": Param(False, "commands are TwistStamped (else Twist)"),
-    "cmd_vel_timeout": Param(2.0, "simulated seconds a command is held, then the robot stops", live=True,
-                             positive=True),
+    "cmd_vel_timeout": Param(2.0, "deadman: simulated seconds after its last command the robot stops (Nav2's "
+                                  "velocity smoother: 1.0)", live=True, positive=True),
     "goal_pose_topic": Param("goal_pose", "goal poses the navigator stand-in drives to"),
     "nav_speed": Param(0.25, "m/s toward a goal pose", live=True, positive=True),
     "odom_topic": Param("odom", "nav_msgs/Odometry out, every tick"),
+    "amcl_pose_topic": Param("amcl_pose", "the AMCL-like pose out, only after motion ('': none)"),
+    "amcl_update_min_d": Param(0.25, "m of odometry along x or y before the next amcl_pose (AMCL's update_min_d)",
+                               low=0.0, high=100.0),
+    "amcl_update_min_a": Param(0.2, "rad of odometry turn before the next amcl_pose (AMCL's update_min_a)",
+                               low=0.0, high=2 * math.pi),
     "costmap_topic": Param("local_costmap/costmap", "the rolling local costmap out"),
     "costmap_size": Param(3.0, "side of the local costmap (m)", live=True, positive=True),
     "costmap_period": Param(0.5, "simulated seconds between local costmaps", live=True, positive=True),
+    "always_send_full_costmap": Param(True, "false: a full local grid only when the window moved, else "
+                                            "<costmap_topic>_updates (Nav2's setting)"),
+    "inflation_radius": Param(0.0, "m of inflation costs around walls in the costmaps (0: none; Nav2: 0.7)",
+                              low=0.0, high=10.0),
+    "cost_scaling_factor": Param(3.0, "the inflation costs' decay (1/m; Nav2's default 3.0)", low=0.0, high=100.0),
     "global_costmap_topic": Param("global_costmap/costmap", "the whole map out, once per layout"),
     "subgoal_poses_topic": Param("subgoal_poses", "each episode's places out (latched PoseArray)"),
     "lockstep": Param("off", "stop the clock at each agent step until it is answered", choices=LOCKSTEP_MODES),

@@ -8,7 +8,9 @@ What every node executable's ``main`` does through :func:`run_node`:
 - rclpy parses ``--ros-args`` (remaps, ``-p``, ``--params-file``, log levels) itself.
 - A managed node (an ``rclpy.lifecycle.LifecycleNode``) started with ``--managed`` (before
   ``--ros-args``) waits unconfigured for a lifecycle manager; without it the process
-  configures and activates it at once, as Nav2's ``autostart`` would.
+  configures and activates it at once, as Nav2's ``autostart`` would. After its shutdown
+  transition the process stays to answer the manager's next lifecycle requests (Nav2's
+  asks ``~/get_state``), up to 2 s (the node's ``may_exit``).
 - SIGINT (Ctrl-C, what ``ros2 launch`` sends) and SIGTERM are a normal stop: exit code the
   node's ``exit_code`` (0). Bad input (parameters, arguments, checkpoints, policies, bags, a
   ROS package that is not installed) exits 2 with one line naming it. While it runs,
@@ -85,7 +87,8 @@ def make_executor(context: Context):
 def run_node(make: Callable[..., Node], argv: list[str] | None = None,
              input_errors: tuple[type[Exception], ...] = (), large_buffers_to_os: bool = True) -> int:
     """Run the node ``make(context=...)`` builds in this process until it finishes (its
-    ``finished`` attribute), Ctrl-C or SIGTERM; then its ``close()``, then rclpy's shutdown.
+    ``may_exit()``, else its ``finished`` attribute), Ctrl-C or SIGTERM; then its ``close()``,
+    then rclpy's shutdown.
     ``argv``: the process's (default ``sys.argv``); ``input_errors``: the node's own
     bad-input exceptions (exit 2, like :data:`STARTUP_ERRORS`)."""
     if large_buffers_to_os:
@@ -118,7 +121,7 @@ def run_node(make: Callable[..., Node], argv: list[str] | None = None,
         elif isinstance(node, LifecycleNode):
             node.get_logger().info(f"managed node: unconfigured (configure, then activate, through "
                                    f"{node.resolve_service_name('~/change_state')})")
-        _spin(executor, context, lambda: stopped.is_set() or getattr(node, "finished", False))
+        _spin(executor, context, lambda: stopped.is_set() or _may_exit(node))
         exit_code = getattr(node, "exit_code", 0)
     except KeyboardInterrupt:
         exit_code = 130
@@ -156,6 +159,12 @@ def _bring_up(node: LifecycleNode) -> None:
             why = getattr(node, "configure_error", "") or "the log says why"
             raise NodeConfigError(f"{node.get_fully_qualified_name()}: {transition.__name__.removeprefix('trigger_')} "
                                   f"failed: {why}")
+
+
+def _may_exit(node: Node) -> bool:
+    """The node's ``may_exit()`` where it has one (a managed node), else its ``finished``."""
+    may_exit = getattr(node, "may_exit", None)
+    return may_exit() if may_exit is not None else getattr(node, "finished", False)
 
 
 def rclpy_version() -> str:

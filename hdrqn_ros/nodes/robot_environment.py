@@ -1,27 +1,33 @@
 """``robot_environment`` node: the environment node's place on a robot.
 
 On a robot nothing simulates the task, so this node builds, every ``step_period`` seconds
-of ROS time (simulated with ``use_sim_time``; from a pose stamped at or after the step's
-time), what the environment node publishes (``docs/topics.md``): ``observation`` (the
-local costmap around the robot, drawn as the simulator draws its view, the places still
-to visit in their colours), ``subgoal_images`` (the costmap around each place),
-``env_step`` (``at_subgoal`` from the robot's distance to each place, visits paid by the
-gridworld's ordered-goal rules: :class:`~hdrqn_ros.robot.ordered_visits.OrderedVisits`,
-episode boundaries) and ``pose``. The critic, meta-controller, sub-controller and learner
-run unchanged, lock-step as in training: a step waits for the sub-controller's ``action``
-on the previous one. What moves the robot is the controllers' business (``goal_pose`` to
-Nav2, or ``cmd_vel``).
+of ROS time (simulated with ``use_sim_time``; from the robot's pose at the step's time),
+what the environment node publishes (``docs/topics.md``): ``observation`` (the local
+costmap around the robot, drawn as the simulator draws its view, the places still to visit
+in their colours), ``subgoal_images`` (the costmap around each place), ``env_step``
+(``at_subgoal`` from where the robot is, visits paid by the gridworld's ordered-goal
+rules: :class:`~hdrqn_ros.robot.ordered_visits.OrderedVisits`, episode boundaries) and
+``pose``. The critic, meta-controller, sub-controller and learner run unchanged, lock-step
+as in training: a step waits for the sub-controller's ``action`` on the previous one. What
+moves the robot is the controllers' business (``goal_pose`` to Nav2, or ``cmd_vel``).
 
-Inputs: the robot pose (``pose_topic``: Odometry, PoseStamped or PoseWithCovarianceStamped),
-the local costmap (``costmap_topic``), optionally a global costmap for the places' images,
-and the places: a ``subgoal_table`` YAML or a latched ``geometry_msgs/PoseArray`` on
-``subgoal_poses_topic`` (a loopback robot publishes each episode's layout there). Every
-input must be in the places' frame (there is no tf2 here). Episodes start and stop with
-``~/start_episode`` and ``~/stop_episode`` (``std_srvs/Trigger``) or one after the other
-with ``autostart``; each ends when every place was visited in order or at ``max_steps``.
-Each finished episode is logged, and appended to ``episode_log``
-(:class:`~hdrqn_ros.robot.episode_log.EpisodeLog`). A managed node
-(:mod:`hdrqn_ros.nodes.lifecycle`): it steps only while active.
+Frames as REP 105 has them: the robot's pose is tf's ``global_frame`` <- ``robot_base_frame``
+(``map <- base_link``) at the step's time (the latest after ``pose_timeout_s``), or a pose
+topic's (``pose_topic``: Odometry, PoseStamped or PoseWithCovarianceStamped, in its own
+frame). Each costmap is used in its own frame at its own stamp: the robot and the places are
+transformed into it; the places (a ``subgoal_table`` YAML or a latched
+``geometry_msgs/PoseArray`` on ``subgoal_poses_topic``) may be in any frame of the tree.
+Full grids come on ``costmap_topic``, Nav2's ``map_msgs/OccupancyGridUpdate`` s on
+``<costmap_topic>_updates`` (``always_send_full_costmap: false``). A place is visited by the
+``visit_rule``: within ``goal_tolerance`` (Nav2's ``xy_goal_tolerance``, so a Nav2 arrival
+counts) or in the place's cell (the simulator's rule, for sub-drives). Episodes start with
+``~/start_episode`` (one each call) and stop with ``~/stop_episode`` (``std_srvs/Trigger``),
+or run back to back with ``autostart``; each ends when every place was visited in order or
+at ``max_steps``, is logged, and appended to ``episode_log``
+(:class:`~hdrqn_ros.robot.episode_log.EpisodeLog`). Every wait (pose, transforms, costmap,
+places, the learner, the controllers' action) is a WARN on ``/diagnostics`` naming what is
+missing and who would publish it. A managed node (:mod:`hdrqn_ros.nodes.lifecycle`): it
+steps only while active.
 """
 from __future__ import annotations
 
@@ -31,11 +37,13 @@ import numpy as np
 from geometry_msgs.msg import PoseArray, PoseStamped
 from nav_msgs.msg import OccupancyGrid
 from rclpy.clock import Clock, ClockType
+from rclpy.time import Time
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float64MultiArray, Int64MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
+from hdrqn_ros.envs.domain import NO_SUBGOAL
 from hdrqn_ros.envs.gridworld import GOAL_NAMES
 from hdrqn_ros.nodes import nav
 from hdrqn_ros.nodes.diagnostics import OK, WARN, Diagnostics
@@ -45,12 +53,23 @@ from hdrqn_ros.nodes.node_logger import python_logger
 from hdrqn_ros.nodes.parameters import NodeConfigError, Param
 from hdrqn_ros.nodes.place_markers import MARKERS, place_markers
 from hdrqn_ros.nodes.process import run_node
-from hdrqn_ros.nodes.qos import DEFAULT_QOS, LATCHED_QOS, STEP_QOS
-from hdrqn_ros.nodes.robot_inputs import RobotInputs
+from hdrqn_ros.nodes.qos import DEFAULT_QOS, LATCHED_QOS, STEP_QOS, keep_last
+from hdrqn_ros.nodes.robot_inputs import Frames, RobotInputs, RobotPose, Waiting
 from hdrqn_ros.nodes.ros_messages import ROS_MESSAGES, bounded_subscription, interface_class
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.robot.episode_log import EpisodeLog
 from hdrqn_ros.robot.ordered_visits import OrderedVisits
+from hdrqn_ros.robot.transforms import Transform
+
+try:
+    from map_msgs.msg import OccupancyGridUpdate
+except ImportError:  # map_msgs is not on PyPI: scripts/install builds it
+    OccupancyGridUpdate = None
+try:
+    from hdrqn_ros.nodes.tf_listener import TfListener
+    NO_TF = ""
+except ImportError as exc:  # tf2_msgs is not on PyPI: scripts/install builds it
+    TfListener, NO_TF = None, f"{exc} (scripts/install builds tf2_msgs into the venv; or source ROS 2)"
 
 DEFAULT_MAX_STEPS = 50
 """The domain's step limit (``max_steps`` 0)."""
@@ -59,6 +78,8 @@ POLL_S, WATCHDOG_S = 0.02, 0.5
 looks at once), and between looks for a missing action."""
 WAIT_REPORTED_S, WAIT_REPEATED_S = 2.0, 10.0
 """A wait is reported once it lasts this long (diagnostics WARN, log), and logged again this often."""
+UPDATES_QOS = keep_last(10, transient_local=True)
+"""``<costmap>_updates``: Nav2 offers reliable, transient local; a few deep, so none is lost in a burst."""
 
 
 def _odd_cells(view: str) -> str | None:
@@ -70,14 +91,22 @@ PARAMETERS = {
     **ENV_PARAMETERS, **MAX_MESSAGE_BYTES,
     "view": Param("5", "the observation's view: an odd number of cells (a string)", check=_odd_cells),
     "step_period": Param(2.5, "seconds (ROS time) per agent step", live=True, positive=True),
-    "pose_topic": Param("/odom", "the robot's pose (e.g. /odom, /amcl_pose)"),
+    "global_frame": Param("map", "the frame of the robot's pose from tf (Nav2's global_frame)"),
+    "robot_base_frame": Param("base_link", "the robot's frame in tf (Nav2's robot_base_frame)"),
+    "pose_timeout_s": Param(1.0, "wall seconds a due step waits for the pose at its time before it takes the latest",
+                            live=True, positive=True),
+    "pose_topic": Param("", "the robot's pose from a topic instead of tf (e.g. /odom, /amcl_pose; '': from tf)"),
     "pose_type": Param("odometry", "the pose topic's type", choices=tuple(nav.POSE_TYPES)),
-    "costmap_topic": Param("/local_costmap/costmap", "the observation's costmap (nav_msgs/OccupancyGrid)"),
+    "costmap_topic": Param("/local_costmap/costmap", "the observation's costmap (nav_msgs/OccupancyGrid; its "
+                                                     "map_msgs/OccupancyGridUpdate on <costmap_topic>_updates)"),
     "global_costmap_topic": Param("", "the places' images' costmap ('': the local one)"),
     "subgoal_table": Param("", "the places as a YAML table (this or subgoal_poses_topic)"),
     "subgoal_poses_topic": Param("", "the places as a latched geometry_msgs/PoseArray"),
     "new_layout_each_episode": Param(False, "start an episode only on places published since the last one ended"),
-    "goal_tolerance": Param(0.125, "metres within which the robot is at a place", live=True, positive=True),
+    "visit_rule": Param("tolerance", "the robot is at a place within goal_tolerance, or in the place's cell "
+                                     "(cell_size_m square: the simulator's rule)", choices=("tolerance", "cell")),
+    "goal_tolerance": Param(0.25, "metres within which the robot is at a place (visit_rule tolerance; Nav2's "
+                                  "xy_goal_tolerance)", live=True, positive=True),
     "max_steps": Param(0, "an episode's step limit (0: the domain's, 50)", live=True, low=0, high=100000),
     "cell_size_m": Param(0.25, "metres per simulator cell in the observation", positive=True),
     "heading_up": Param(False, "observation turned with the robot's yaw (forward/turn action tables) instead of "
@@ -86,17 +115,44 @@ PARAMETERS = {
                     live=True, low=1, high=100),
     "unknown_cells": Param("outside", "unknown costmap cells drawn black (outside, as beyond the simulator's map) "
                                       "or as wall", choices=("outside", "wall")),
-    "stale_after_s": Param(5.0, "a pose or costmap older than this (ROS time since it arrived) holds the next step",
+    "stale_after_s": Param(5.0, "a pose, transform or costmap older than this (ROS time) holds the next step",
                            live=True, positive=True),
     "action_timeout": Param(5.0, "wall seconds without an action before a warning and a re-published step",
                             live=True, positive=True),
-    "autostart": Param(True, "start the next episode as soon as one ends (false: on ~/start_episode)", live=True),
+    "autostart": Param(True, "run episodes back to back (false: one per ~/start_episode)", live=True),
     "max_episodes": Param(0, "exit after this many episodes (0: never)", live=True, low=0, high=2**31),
     "episode_log": Param("", "append each finished episode to this JSON-lines file ('': off)"),
     "wait_for_learner": Param(False, "start the first episode once a learner is heard on learner_credit (a learner "
                                      "that records the episodes gets all of them)"),
 }
 """The robot environment's parameters; the live ones take effect at the next step."""
+
+
+class CellVisits(OrderedVisits):
+    """:class:`OrderedVisits` by the simulator's rule: the robot is at a place when it is in
+    the place's cell, the square of ``cell_m`` centred on it (axes of the places' frame)."""
+
+    def __init__(self, n_goals: int, cell_m: float, max_steps: int):
+        super().__init__(n_goals, cell_m / 2, max_steps)
+
+    def where(self, robot_xy) -> int:
+        off = np.abs(self.goal_xy - np.asarray(robot_xy, dtype=np.float64)).max(axis=1)
+        nearest = int(np.argmin(off))
+        return nearest if off[nearest] < self.tolerance_m else NO_SUBGOAL
+
+
+class Scene:
+    """What a step is built from: the robot's ``pose``, the places ``goal_xy`` ``(n, 2)`` in
+    its frame, and the transforms from that frame into the costmap's (``to_costmap``) and the
+    places' images' costmap's (``to_images``) frames."""
+
+    def __init__(self, pose: RobotPose, goal_xy: np.ndarray, to_costmap: Transform, to_images: Transform):
+        self.pose, self.goal_xy, self.to_costmap, self.to_images = pose, goal_xy, to_costmap, to_images
+
+    def robot_in(self, to: Transform) -> tuple[float, float, float]:
+        """The robot's ``(x, y, yaw)`` in the frame ``to`` maps into."""
+        x, y = to.apply((self.pose.x, self.pose.y))
+        return float(x), float(y), self.pose.yaw + to.yaw
 
 
 class RobotEnvironmentNode(ManagedNode):
@@ -114,13 +170,24 @@ class RobotEnvironmentNode(ManagedNode):
                                   "(a latched geometry_msgs/PoseArray), exactly one")
         self.num_actions, self.num_subgoals = domain_sizes(params["env"], params["view"])
         self.view = int(params["view"])
-        self.task = OrderedVisits(self.num_subgoals, params["goal_tolerance"], params["max_steps"] or DEFAULT_MAX_STEPS)
+        max_steps = params["max_steps"] or DEFAULT_MAX_STEPS
+        self.task = CellVisits(self.num_subgoals, params["cell_size_m"], max_steps) \
+            if params["visit_rule"] == "cell" else OrderedVisits(self.num_subgoals, params["goal_tolerance"], max_steps)
         places = nav.SubgoalTable.load(params["subgoal_table"], self.num_subgoals) if params["subgoal_table"] else None
+        from_tf = not params["pose_topic"]
+        if from_tf and TfListener is None:
+            raise NodeConfigError(f"the robot pose from tf ({params['global_frame']} <- {params['robot_base_frame']}) "
+                                  f"needs tf2_msgs: {NO_TF}; or give a pose topic (pose_topic)")
         topics = {"pose": params["pose_topic"], "costmap": params["costmap_topic"],
-                  "global": params["global_costmap_topic"], "places": params["subgoal_poses_topic"],
-                  wire.ACTION: wire.ACTION, wire.SUBGOAL: wire.SUBGOAL}
+                  "costmap_updates": params["costmap_topic"] + "_updates", "global": params["global_costmap_topic"],
+                  "global_updates": params["global_costmap_topic"] and params["global_costmap_topic"] + "_updates",
+                  "places": params["subgoal_poses_topic"], wire.ACTION: wire.ACTION, wire.SUBGOAL: wire.SUBGOAL}
+        self.tf = TfListener(self) if TfListener is not None else None
+        frames = Frames(self._lookup if self.tf is not None else None, NO_TF)
         self.inputs = RobotInputs(self.logger, {kind: self.resolve_topic_name(topic) for kind, topic in topics.items()
-                                                if topic}, places, self.num_subgoals, self.view, params["cell_size_m"])
+                                                if topic}, places, self.num_subgoals, self.view, params["cell_size_m"],
+                                  frames, (params["global_frame"], params["robot_base_frame"]) if from_tf else None,
+                                  amcl_like=params["pose_type"] == "pose_with_covariance")
         # step keys are ROS time: simulated as it is, wall time since the node started (below 2^53)
         self.key_origin = 0 if self.get_parameter("use_sim_time").value else time.time_ns() - 10**9
         self._reset()
@@ -138,12 +205,17 @@ class RobotEnvironmentNode(ManagedNode):
         self.diagnostics = Diagnostics(self, self._health)
         self.episodes = EpisodeLog(params["episode_log"])
 
+    def _lookup(self, target: str, source: str, stamp_ns: int | None) -> Transform:
+        return self.tf.lookup(target, source, None if stamp_ns is None else Time(nanoseconds=stamp_ns))
+
     def _reset(self) -> None:
         """No episode yet (the first starts as ``autostart`` says), nothing heard from the learner."""
         self.learner_heard = False
-        self.start_requested, self.stop_requested = self.params["autostart"], False
+        self.start_requested, self.stop_requested = False, False  # one episode asked for; the running one to end
+        self.auto = self.params["autostart"]  # episodes back to back (paused by ~/stop_episode)
         self.running = False
         self.record: dict = {}  # the latest step's env_step fields
+        self.scene: Scene | None = None  # the latest step's
         self.key = self.step_ns = 0
         self.ended_ns = -1  # ROS time the last episode ended
         self.episode, self.env_steps, self.episode_return = -1, 0, 0.0
@@ -153,6 +225,8 @@ class RobotEnvironmentNode(ManagedNode):
         self.option_subgoal = -1  # the current option's place (the meta-controller's subgoal), for the markers
         self.wait_since: float | None = None  # wall time the current wait began
         self.wait_logged, self.wait_reason = 0.0, ""
+        self.pose_wait_since: float | None = None  # wall time the next step began to wait for its pose
+        self.latest_poses = 0  # steps that took the latest pose after pose_timeout_s
 
     def _subscribe(self) -> None:
         params = self.params
@@ -160,11 +234,21 @@ class RobotEnvironmentNode(ManagedNode):
         def subscribe(msg_type, topic: str, callback, qos) -> None:
             bounded_subscription(self, msg_type, topic, callback, qos, params["max_message_bytes"], self.logger)
 
-        subscribe(interface_class(nav.POSE_TYPES[params["pose_type"]]), params["pose_topic"], self._on_pose,
-                  DEFAULT_QOS)
-        subscribe(OccupancyGrid, params["costmap_topic"], self._on_costmap, LATCHED_QOS)
-        if params["global_costmap_topic"]:
-            subscribe(OccupancyGrid, params["global_costmap_topic"], self._on_global_costmap, LATCHED_QOS)
+        if params["pose_topic"]:
+            subscribe(interface_class(nav.POSE_TYPES[params["pose_type"]]), params["pose_topic"], self._on_pose,
+                      DEFAULT_QOS)
+        for kind, topic in (("costmap", params["costmap_topic"]), ("global", params["global_costmap_topic"])):
+            if not topic:
+                continue
+            subscribe(OccupancyGrid, topic, lambda msg, kind=kind: self.inputs.take_costmap(msg, self._now(), kind),
+                      LATCHED_QOS)
+            if OccupancyGridUpdate is None:
+                self.get_logger().warning(f"not reading {topic}_updates: map_msgs is not installed (scripts/install "
+                                          f"builds it); Nav2's costmap must then send full grids "
+                                          f"(always_send_full_costmap: true)")
+            else:
+                subscribe(OccupancyGridUpdate, topic + "_updates",
+                          lambda msg, kind=kind: self.inputs.take_update(msg, self._now(), kind), UPDATES_QOS)
         if params["subgoal_poses_topic"]:
             subscribe(PoseArray, params["subgoal_poses_topic"], self.inputs.take_places, LATCHED_QOS)
         subscribe(Int64MultiArray, wire.ACTION, self._on_action, STEP_QOS)
@@ -188,12 +272,12 @@ class RobotEnvironmentNode(ManagedNode):
     def on_live_parameter(self, name: str, value) -> None:
         if not self.configured:
             return  # read at the next configure
-        if name == "goal_tolerance":
+        if name == "goal_tolerance" and not isinstance(self.task, CellVisits):
             self.task.tolerance_m = float(value)
         elif name == "max_steps":
             self.task.max_steps = int(value) or DEFAULT_MAX_STEPS
-        elif name == "autostart" and value:
-            self.start_requested = True
+        elif name == "autostart":
+            self.auto = bool(value)
 
     def _ns(self, name: str) -> int:
         """Parameter ``name`` (seconds) in nanoseconds."""
@@ -207,12 +291,6 @@ class RobotEnvironmentNode(ManagedNode):
     def _on_pose(self, msg) -> None:
         if self.inputs.take_pose(msg, self._now()):
             self._tick()
-
-    def _on_costmap(self, msg: OccupancyGrid) -> None:
-        self.inputs.take_costmap(msg, self._now())
-
-    def _on_global_costmap(self, msg: OccupancyGrid) -> None:
-        self.inputs.take_costmap(msg, self._now(), "global")
 
     def _on_action(self, msg: Int64MultiArray) -> None:
         try:
@@ -241,25 +319,38 @@ class RobotEnvironmentNode(ManagedNode):
         self.learner_heard = True
 
     def _on_start(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        response.success = not self.finished
-        response.message = "finished: max_episodes reached" if self.finished else \
-            ("an episode is running" if self.running else "the next episode starts when the inputs are fresh")
-        self.start_requested, self.stop_requested = not self.finished, False
+        """One episode: the next, once the inputs are fresh (with ``autostart``: they run back to back again)."""
+        if self.finished or self.running:
+            response.success = False
+            response.message = "finished: max_episodes reached" if self.finished else \
+                f"episode {self.episode} is running: start_episode starts one when none runs"
+            return response
+        self.start_requested, self.stop_requested, self.auto = True, False, self.params["autostart"]
+        response.success = True
+        response.message = f"episode {self.episode + 1} starts when the inputs are fresh" + \
+            (" (autostart: then back to back)" if self.auto else "")
         return response
 
     def _on_stop(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """The running episode ends at its next step (truncated); none starts until ``~/start_episode``."""
         response.success = True
         response.message = f"episode {self.episode} ends at the next step" if self.running else "no episode running"
-        self.start_requested, self.stop_requested = False, self.running
+        self.start_requested, self.auto, self.stop_requested = False, False, self.running
         return response
 
     # -- health ----------------------------------------------------------------------------------------
     def _health(self) -> tuple[int, str, dict[str, str]]:
         """The diagnostics: WARN while a step has waited over 2 s (saying for what), or messages were rejected."""
-        places = self.inputs.places
+        places, params = self.inputs.places, self.params
+        pose_source = f"tf {params['global_frame']} <- {params['robot_base_frame']}" if self.inputs.pose_frames \
+            else f"topic {self.inputs.topics['pose']}"
         values = {"episodes": str(self.episodes.done), "successes": str(self.episodes.successes),
-                  "step_period_s": f"{self.params['step_period']:g}", "messages_rejected": str(self.inputs.rejections),
-                  "places": places.source if places is not None else "none yet"}
+                  "step_period_s": f"{params['step_period']:g}", "messages_rejected": str(self.inputs.rejections),
+                  "places": places.source if places is not None else "none yet", "pose_source": pose_source,
+                  "steps_on_the_latest_pose": str(self.latest_poses),
+                  "transforms_at_the_latest_time": str(self.inputs.frames.fell_back),
+                  "visit_rule": "in the place's cell" if isinstance(self.task, CellVisits) else
+                  f"within {self.task.tolerance_m:g} m"}
         if self.finished:
             return OK, f"finished {self.episodes.done} episodes", values
         if not self.active:
@@ -302,52 +393,89 @@ class RobotEnvironmentNode(ManagedNode):
             return
         if self.running:
             self._step_when_due(self._now())
-        elif self.start_requested:
+        elif self.start_requested or self.auto:
             self._start_when_ready(self._now())
+
+    def _scene(self, at_ns: int, now: int) -> Scene:
+        """The robot at ``at_ns`` and the places and costmaps in its frame; :class:`Waiting` if not yet."""
+        inputs, params = self.inputs, self.params
+        if self.pose_wait_since is None:
+            self.pose_wait_since = time.monotonic()
+        pose = inputs.pose_at(at_ns, now, self._ns("stale_after_s"), time.monotonic() - self.pose_wait_since,
+                              params["pose_timeout_s"])
+        places, frames = inputs.places, inputs.frames
+        to_pose = frames.transform(pose.frame, places.frame_id, pose.stamp_ns,
+                                   f"the places ({places.source}, frame {places.frame_id!r})")
+        goal_xy = to_pose.apply(np.array([p[:2] for p in places.poses]))
+        into = {}
+        for kind, grid in (("costmap", inputs.costmap.value), ("global", inputs.places_costmap)):
+            topic = inputs.topics.get(kind if inputs.global_costmap.value is not None else "costmap")
+            into[kind] = frames.transform(grid.frame_id, pose.frame, grid.stamp_ns,
+                                          f"the costmap on {topic} (frame {grid.frame_id!r})")
+        if pose.latest and not (self.scene is not None and self.scene.pose.latest):
+            self.get_logger().info(f"no pose at the step's time within pose_timeout_s ({params['pose_timeout_s']:g} "
+                                   f"s): stepping on the latest ({self.inputs.pose_frames and 'tf' or 'topic'})")
+        return Scene(pose, goal_xy, into["costmap"], into["global"])
 
     def _start_when_ready(self, now: int) -> None:
         if self.params["wait_for_learner"] and not self.learner_heard:
             return self._wait(f"for a learner on {self.resolve_topic_name(wire.CREDIT)}")
         if self.inputs.places is None:
-            return self._wait(f"no places yet on {self.inputs.topics['places']}")
+            why = self.inputs.refused.get("places")
+            return self._wait(f"no places yet on {self.inputs.topics['places']}" +
+                              (f": the last were refused: {why}" if why else " (a latched geometry_msgs/PoseArray)"))
         new_layout = self.params["new_layout_each_episode"]
         if new_layout and self.inputs.places_stamp < self.ended_ns:
-            return
+            return self._wait(f"for the next episode's places on {self.inputs.topics['places']} (new_layout_each_"
+                              f"episode: published after the last episode ended)")
         if why := self.inputs.missing(now, self._ns("stale_after_s"), self.inputs.places_stamp if new_layout else 0):
             return self._wait(f"to start an episode: {why}")
-        self._start_episode(now)
+        try:
+            scene = self._scene(now, now)
+        except Waiting as why:
+            return self._wait(f"to start an episode: {why}")
+        self._start_episode(now, scene)
 
     def _step_when_due(self, now: int) -> None:
         due = self.step_ns + self._ns("step_period")
-        if self.pending_action is None or now < due or self.inputs.pose.stamp_ns < due:
-            return  # the action, the step's time, and a pose measured at or after it
+        if self.pending_action is None or now < due:
+            return  # the action, and the step's time
         if why := self.inputs.missing(now, self._ns("stale_after_s")):
             return self._wait(f"for step t={int(self.record['t']) + 1}: {why}")
-        self._advance(now)
+        try:
+            scene = self._scene(due, now)
+        except Waiting as why:
+            return self._wait(f"for step t={int(self.record['t']) + 1}: {why}")
+        self._advance(now, scene)
 
-    def _new_key(self, now: int) -> None:
+    def _new_key(self, now: int, scene: Scene) -> None:
         self.key = max(now - self.key_origin, self.key + 1)
-        self.step_ns, self.pending_action = now, None
+        self.step_ns, self.pending_action, self.scene = now, None, scene
         self.published_at = self.stepped_at = time.monotonic()
-        self.wait_since = None
+        self.wait_since = self.pose_wait_since = None
+        self.latest_poses += scene.pose.latest
 
-    def _start_episode(self, now: int) -> None:
+    def _start_episode(self, now: int, scene: Scene) -> None:
         self.episode += 1
-        self.task.start(np.array([pose[:2] for pose in self.inputs.places.poses]))
+        self.start_requested = False
+        self.task.start(scene.goal_xy)
         self.running, self.episode_return, self.decision_s, self.option_subgoal = True, 0.0, [], -1
-        self._new_key(now)
+        self._new_key(now, scene)
         self.record = dict.fromkeys(wire.STEP_FIELDS, 0.0)
         self.record.update(key=self.key, prev_key=0, env_steps=self.env_steps, episode=self.episode,
-                           at_subgoal=self.task.where(self.inputs.pose.value[:2]), decision_point=1)
+                           at_subgoal=self.task.where((scene.pose.x, scene.pose.y)), decision_point=1)
         self._publish()
 
-    def _advance(self, now: int) -> None:
+    def _advance(self, now: int, scene: Scene) -> None:
         prev_key, action = self.key, self.pending_action
-        outcome = self.task.step(self.inputs.pose.value[:2], self.inputs.on_lethal(self.params["lethal"]))
+        self.task.goal_xy = scene.goal_xy  # the places in the pose's frame now (a frame of their own may move)
+        robot = scene.robot_in(scene.to_costmap)
+        outcome = self.task.step((scene.pose.x, scene.pose.y),
+                                 self.inputs.on_lethal(self.inputs.costmap.value, robot[:2], self.params["lethal"]))
         if self.stop_requested and not outcome["terminated"]:
             outcome.update(truncated=True, decision_point=False)
         self.env_steps += 1
-        self._new_key(now)
+        self._new_key(now, scene)
         self.record = {"key": self.key, "prev_key": prev_key, "env_steps": self.env_steps, "episode": self.episode,
                        "t": self.task.t, "action": action, **outcome}
         self.episode_return += outcome["extrinsic"]
@@ -367,26 +495,36 @@ class RobotEnvironmentNode(ManagedNode):
             self.finished = True
 
     def _publish(self) -> None:
-        """The current step: ``env_step``, ``observation``, ``subgoal_images``, ``pose`` and the markers."""
-        key, frame, params, inputs = self.key, self.inputs.places.frame_id, self.params, self.inputs
-        x, y, yaw = inputs.pose.value
-        view = {"view_cells": self.view, "cell_size_m": params["cell_size_m"], "lethal": params["lethal"],
-                "robot_yaw": yaw if params["heading_up"] else None, "unknown": params["unknown_cells"],
-                "goals_xy": self.task.uncollected_xy()}
-        obs = nav.costmap_to_observation(inputs.costmap.value, robot_xy=(x, y), **view)
-        images = np.concatenate([nav.costmap_to_observation(inputs.places_costmap, robot_xy=xy, agent_xy=(x, y), **view)
-                                 for xy in self.task.goal_xy])
+        """The current step: ``env_step``, ``observation``, ``subgoal_images``, ``pose`` and the markers,
+        each image drawn in its costmap's frame."""
+        key, params, inputs, scene = self.key, self.params, self.inputs, self.scene
+        grid, images_grid = inputs.costmap.value, inputs.places_costmap
+
+        def drawn(to: Transform) -> tuple[tuple[float, float], dict]:
+            """The robot's (x, y) and the drawing's settings in the frame ``to`` maps into."""
+            x, y, yaw = scene.robot_in(to)
+            goals = [None if xy is None else tuple(to.apply(xy)) for xy in self.task.uncollected_xy()]
+            return (x, y), {"view_cells": self.view, "cell_size_m": params["cell_size_m"], "lethal": params["lethal"],
+                            "robot_yaw": yaw if params["heading_up"] else None, "unknown": params["unknown_cells"],
+                            "goals_xy": goals}
+
+        robot_xy, style = drawn(scene.to_costmap)
+        obs = nav.costmap_to_observation(grid, robot_xy=robot_xy, **style)
+        robot_xy, style = drawn(scene.to_images)
+        images = np.concatenate([nav.costmap_to_observation(images_grid, robot_xy=scene.to_images.apply(xy),
+                                                            agent_xy=robot_xy, **style) for xy in self.task.goal_xy])
         self.pub_step.publish(wire.make_record(ROS_MESSAGES, wire.FLOATS, wire.STEP_FIELDS,
                                                [self.record[f] for f in wire.STEP_FIELDS]))
-        self.pub_obs.publish(wire.make_image(ROS_MESSAGES, key, obs, frame))
-        self.pub_images.publish(wire.make_image(ROS_MESSAGES, key, images, frame))
-        self.pub_pose.publish(wire.make_pose(ROS_MESSAGES, key, frame, x, y))
+        self.pub_obs.publish(wire.make_image(ROS_MESSAGES, key, obs, grid.frame_id))
+        self.pub_images.publish(wire.make_image(ROS_MESSAGES, key, images, images_grid.frame_id))
+        self.pub_pose.publish(wire.make_pose(ROS_MESSAGES, key, scene.pose.frame, scene.pose.x, scene.pose.y))
         self._publish_markers()
 
     def _publish_markers(self) -> None:
-        header = wire.make_header(ROS_MESSAGES, self.key, self.inputs.places.frame_id)
+        scene = self.scene
+        header = wire.make_header(ROS_MESSAGES, self.key, scene.pose.frame)
         self.pub_markers.publish(place_markers(header, self.task.goal_xy, self.task.collected, self.option_subgoal,
-                                               self.inputs.pose.value[:2]))
+                                               (scene.pose.x, scene.pose.y)))
 
 
 def main(argv: list[str] | None = None) -> int:

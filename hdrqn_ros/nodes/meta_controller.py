@@ -5,7 +5,11 @@ Lock-step with the environment node: at each option's start (the critic says
 hDQN) or from the sub-controller's LSTM state at the end of the last option (hDRQNv2), for
 the environment node's whole batch in one forward pass, and publishes it on ``subgoal``.
 With the robot's places (``subgoal_table`` or ``subgoal_poses_topic``) each new option's
-place also goes to the navigator (``goal_pose``: :class:`~hdrqn_ros.nodes.nav_adapters.GoalPoses`).
+place also goes to the navigator: as one ``navigate_to_pose`` goal whose result ends the
+option (``navigation: action``, :class:`~hdrqn_ros.nodes.navigate_goals.NavigateGoals`; an
+option waits for the action server), or as a ``goal_pose`` message (``navigation: topic``,
+:class:`~hdrqn_ros.nodes.nav_adapters.GoalPoses`). The active goal is cancelled when the
+episode ends, and when the node is deactivated or stops.
 """
 from __future__ import annotations
 
@@ -18,7 +22,8 @@ from std_msgs.msg import Float64MultiArray, Int64MultiArray
 from hdrqn_ros.agents.specs import ALGO_SPECS, STATE_SIZE
 from hdrqn_ros.nodes.controller_node import CONTROLLER_PARAMETERS, ControllerNode
 from hdrqn_ros.nodes.lockstep import LockStepController
-from hdrqn_ros.nodes.nav_adapters import GOAL_PARAMETERS, GoalPoses
+from hdrqn_ros.nodes.nav_adapters import GOAL_PARAMETERS, GoalPoses, SubgoalPlaces
+from hdrqn_ros.nodes.navigate_goals import NavigateGoals
 from hdrqn_ros.nodes.parameters import NodeConfigError
 from hdrqn_ros.nodes.qos import STEP_QOS
 from hdrqn_ros.nodes.ros_messages import ROS_MESSAGES
@@ -31,9 +36,10 @@ PARAMETERS = {**CONTROLLER_PARAMETERS, **GOAL_PARAMETERS}
 class LockStepMetaController(LockStepController):
     """Answers each step where an option starts with the subgoals of the environments that
     start one (``new_option`` 1) once its input has come: the observation, or (hDRQNv2) the
-    sub-controller's state after the action that ended the option. Other steps get no answer."""
+    sub-controller's state after the action that ended the option, and the navigator's action
+    server (``goals``: where the places go, if anywhere). Other steps get no answer."""
 
-    def __init__(self, node: ControllerNode, goals: GoalPoses | None):
+    def __init__(self, node: ControllerNode, goals: GoalPoses | NavigateGoals | None):
         super().__init__(node)
         self.goals = goals
         self.state_input = node.spec.meta_input == "state"
@@ -64,14 +70,18 @@ class LockStepMetaController(LockStepController):
             return False
         if not starts.any():
             return True
+        if self.goals is not None and not self.goals.ready():
+            return False
         if not self.state_input:
             return self.inbox.has(wire.OBSERVATION, int(rows[0]["key"]))
         ended = [int(row["prev_key"]) for row, start in zip(rows, starts) if start and row["t"] > 0]
         return not ended or self.inbox.has(wire.SUB_STATE, ended[0])
 
     def process(self, rows: list[dict]) -> list:
-        """A ``subgoal`` (and ``goal_pose``) where options start; nothing on other steps."""
+        """A ``subgoal`` (and the navigator's goal) where options start; nothing on other steps."""
         key = int(rows[0]["key"])
+        if all_done(rows) and self.goals is not None:
+            self.goals.end_episode()
         starts = None if all_done(rows) else self.option_starts(rows)
         if starts is None or not starts.any():
             return []
@@ -94,14 +104,18 @@ class LockStepMetaController(LockStepController):
             replies += self.goals.replies(int(subgoals[0]), key)
         return replies
 
+    def problems(self) -> list[str]:
+        return [] if self.goals is None else self.goals.problems()
+
 
 class MetaControllerNode(ControllerNode):
-    """The ``meta_controller`` node of a hierarchical agent, with goal poses given the robot's places."""
+    """The ``meta_controller`` node of a hierarchical agent, with navigation goals given the robot's places."""
 
     role = "meta"
 
     def __init__(self, **kwargs):
         super().__init__("meta_controller", PARAMETERS, **kwargs)
+        self.goals: GoalPoses | NavigateGoals | None = None
 
     def check_parameters(self) -> None:
         params = self.params
@@ -115,6 +129,35 @@ class MetaControllerNode(ControllerNode):
 
     def build_parts(self) -> None:
         params = self.params
-        goals = GoalPoses(self, self.net.num_subgoals) if params["subgoal_table"] or params["subgoal_poses_topic"] \
-            else None
-        self.controller = LockStepMetaController(self, goals)
+        self.goals = None
+        if params["subgoal_table"] or params["subgoal_poses_topic"]:
+            places = SubgoalPlaces(self, self.net.num_subgoals)
+            self.goals = NavigateGoals(self, places, self._server_ready) if params["navigation"] == "action" \
+                else GoalPoses(self, places)
+        self.controller = LockStepMetaController(self, self.goals)
+
+    def _server_ready(self) -> None:
+        """The action server came: take the step that waited for it."""
+        if self.active and self.controller is not None:
+            self.controller.pump()
+
+    def stop(self) -> None:
+        """Deactivated or stopping: the active navigation goal is cancelled."""
+        if self.goals is not None:
+            self.goals.stop()
+
+    def teardown(self) -> None:
+        if self.goals is not None:
+            self.goals.release()
+        super().teardown()
+
+    def close(self) -> None:
+        """The process stops: the active goal is cancelled, and the cancel answered (at most 2 s)."""
+        goals = self.goals
+        super().close()
+        if goals is not None:
+            goals.settle(self.executor)
+
+    def health(self) -> tuple[int, str, dict[str, str]]:
+        level, message, values = super().health()
+        return level, message, {**values, **(self.goals.values() if self.goals is not None else {})}

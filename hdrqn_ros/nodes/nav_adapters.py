@@ -1,6 +1,7 @@
 """The Nav2 adapters the controllers hand their decisions to: the sub-controller's actions as
-velocity commands (``cmd_vel``), the meta-controller's subgoals as goal poses (``goal_pose``).
-The tables are :mod:`hdrqn_ros.nodes.nav`'s; see ``docs/nav2.md``."""
+velocity commands (``cmd_vel``), the meta-controller's subgoals as goal poses (``goal_pose``;
+as ``navigate_to_pose`` goals: :mod:`hdrqn_ros.nodes.navigate_goals`). The tables are
+:mod:`hdrqn_ros.nodes.nav`'s; see ``docs/nav2.md``."""
 from __future__ import annotations
 
 import time
@@ -26,9 +27,16 @@ VELOCITY_PARAMETERS = {
 GOAL_PARAMETERS = {
     **SUBGOAL_TABLE,
     "subgoal_poses_topic": Param("", "instead of subgoal_table: a latched geometry_msgs/PoseArray of the places"),
-    "goal_pose_topic": Param("goal_pose", "where each new option's place goes (geometry_msgs/PoseStamped)"),
+    "navigation": Param("action", "how each new option's place goes to the navigator: a navigate_to_pose goal whose "
+                                  "result ends the option (action), or a goal_pose message (topic)",
+                        choices=("action", "topic")),
+    "navigate_action": Param("navigate_to_pose", "navigation action: the nav2_msgs/NavigateToPose action (Nav2's "
+                                                 "bt_navigator serves it)"),
+    "goal_pose_topic": Param("goal_pose", "navigation topic: where each new option's place goes "
+                                          "(geometry_msgs/PoseStamped)"),
 }
-"""The meta-controller's goal-pose parameters (:class:`GoalPoses`)."""
+"""The meta-controller's navigation parameters (:class:`GoalPoses`,
+:class:`~hdrqn_ros.nodes.navigate_goals.NavigateGoals`)."""
 DELIVERY_LIMIT_S = 2.0
 """How long a stopping node waits for every subscriber to acknowledge its zero command."""
 STALE_CHECK_S = 0.05
@@ -86,27 +94,64 @@ class VelocityDriver:
                 f"(stale_after_s {self.node.params['stale_after_s']})")
 
 
-class GoalPoses:
-    """Sends each new option's subgoal to the robot's navigator as a ``PoseStamped`` on
-    ``goal_pose_topic`` (Nav2's ``goal_pose``): its place from ``subgoal_table``, or from the
-    latest ``PoseArray`` on ``subgoal_poses_topic`` (nothing is sent before one arrives)."""
+class SubgoalPlaces:
+    """The places of the subgoals: from ``subgoal_table``, or the latest ``PoseArray`` on
+    ``subgoal_poses_topic`` (``table`` is ``None`` until one arrives)."""
 
     def __init__(self, node: ControllerNode, num_subgoals: int):
         self.node, self.num_subgoals = node, num_subgoals
         params = node.params
-        self.places = SubgoalTable.load(params["subgoal_table"], num_subgoals) if params["subgoal_table"] else None
+        self.table = SubgoalTable.load(params["subgoal_table"], num_subgoals) if params["subgoal_table"] else None
         if params["subgoal_poses_topic"]:
             bounded_subscription(node, PoseArray, params["subgoal_poses_topic"], self._on_places, LATCHED_QOS,
                                  params["max_message_bytes"], node.logger)
-        self.pub = node.create_publisher(PoseStamped, params["goal_pose_topic"], DEFAULT_QOS)
 
-    def replies(self, subgoal: int, key: int) -> list[tuple]:
-        """The (publisher, goal pose) of ``subgoal`` stamped ``key``; none while the places are unknown."""
-        return [] if self.places is None else [(self.pub, self.places.pose_msg(subgoal, key))]
+    def pose_msg(self, subgoal: int, stamp) -> PoseStamped | None:
+        """The place of ``subgoal`` stamped ``stamp`` (ns, or (sec, nanosec)); ``None`` while unknown."""
+        return None if self.table is None else self.table.pose_msg(subgoal, stamp)
 
     def _on_places(self, msg: PoseArray) -> None:
         topic = self.node.params["subgoal_poses_topic"]
         places = self.node.decode(topic, lambda: SubgoalTable.from_pose_array(
             msg, self.num_subgoals, self.node.resolve_topic_name(topic)))
         if places is not None:
-            self.places = places
+            self.table = places
+
+
+class GoalPoses:
+    """Sends each new option's subgoal to the robot's navigator as a ``PoseStamped`` on
+    ``goal_pose_topic`` (Nav2's ``goal_pose``, fire-and-forget: ``navigation: topic``);
+    nothing is sent while the places are unknown. The navigator's own topic subscription
+    decides what happens to a goal: nothing comes back, and the option ends at the place or
+    at the critic's ``option_timeout``."""
+
+    def __init__(self, node: ControllerNode, places: SubgoalPlaces):
+        self.places = places
+        self.pub = node.create_publisher(PoseStamped, node.params["goal_pose_topic"], DEFAULT_QOS)
+
+    def ready(self) -> bool:
+        """A goal can go out now (always: the topic has no server to wait for)."""
+        return True
+
+    def replies(self, subgoal: int, key: int) -> list[tuple]:
+        """The (publisher, goal pose) of ``subgoal`` stamped ``key``; none while the places are unknown."""
+        msg = self.places.pose_msg(subgoal, key)
+        return [] if msg is None else [(self.pub, msg)]
+
+    def end_episode(self) -> None:
+        """The episode ended (a goal pose cannot be taken back)."""
+
+    def stop(self) -> None:
+        """The node stops acting (a goal pose cannot be taken back)."""
+
+    def problems(self) -> list[str]:
+        return []
+
+    def values(self) -> dict[str, str]:
+        return {"navigation": f"topic {self.pub.topic_name}"}
+
+    def release(self) -> None:
+        """Nothing to release beyond the publisher (destroyed with the node's entities)."""
+
+    def settle(self, executor) -> None:
+        """Nothing waits for an answer."""

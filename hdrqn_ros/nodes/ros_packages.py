@@ -9,10 +9,21 @@ ROS_PACKAGES = ("rclpy", "rcl_interfaces", "builtin_interfaces", "ament_index_py
 extra (``test/test_packaging.py`` keeps the three in step)."""
 
 
+BUILT_PACKAGES = ("tf2_msgs", "nav2_msgs", "bond", "map_msgs")
+"""ROS 2 Jazzy interface packages the robot nodes use that PyPI has no wheels for:
+``scripts/build_interfaces`` (run by ``scripts/install``) builds them into the venv from their
+documented definitions in ``ros_interfaces/`` (only the types the nodes use); a sourced ROS 2's
+own packages win."""
+
+
 def install_hint(package: str) -> str:
-    """How to get ROS package ``package``: apt on a ROS 2 install, else the ``ros`` extra."""
-    return (f"on a ROS 2 Jazzy install: sudo apt install ros-jazzy-{package.replace('_', '-')}; "
-            f"without ROS (Linux x86-64): pip install 'hdrqn_ros[ros]'")
+    """How to get ROS package ``package``: apt on a ROS 2 install, else the ``ros`` extra or,
+    for :data:`BUILT_PACKAGES`, ``scripts/build_interfaces``."""
+    apt = f"on a ROS 2 Jazzy install: sudo apt install ros-jazzy-{package.replace('_', '-')}"
+    if package in BUILT_PACKAGES:
+        return (f"{apt}; without ROS (Linux x86-64, no PyPI wheel): scripts/install builds it into the venv "
+                f"(or scripts/build_interfaces alone; it needs g++ and the Python headers)")
+    return f"{apt}; without ROS (Linux x86-64): pip install 'hdrqn_ros[ros]'"
 
 
 class RosNotInstalled(ImportError):

@@ -9,7 +9,10 @@ real node processes) driven by a manager that does what Nav2's does
   bond itself at deactivate;
 - a node killed while up: the manager sees its bond broken within ``bond_timeout`` and
   brings the others down;
-- ``bond_timeout: 0.0`` (no bonds): up and down as before.
+- ``bond_timeout: 0.0`` (no bonds): up and down as before;
+- the node's side of a bond (in process, on DDS): activated through ``~/change_state`` a
+  node bonds, activated by its own process it does not; a manager that ends the bond first
+  is answered with ``active: false`` at once, and the heartbeats stop.
 """
 from __future__ import annotations
 
@@ -21,6 +24,12 @@ import pytest
 
 pytest.importorskip("rclpy", reason="ROS 2 Jazzy (rclpy) is not installed here")
 
+from lifecycle_msgs.msg import Transition  # noqa: E402
+from lifecycle_msgs.srv import ChangeState  # noqa: E402
+from rclpy.qos import QoSProfile  # noqa: E402
+
+from hdrqn_ros.nodes import bond as node_bond  # noqa: E402
+from hdrqn_ros.nodes.lifecycle import ManagedNode  # noqa: E402
 from hdrqn_ros.robot_graph import RobotRun, robot_processes, write_params  # noqa: E402
 from hdrqn_ros.supervisor import Supervisor  # noqa: E402
 
@@ -113,3 +122,66 @@ def test_bond_timeout_zero_up_and_down(managed):
     assert manager.shutdown(), logs(sup, manager)
     assert manager.states == {n: "finalized" for n in MANAGED}, logs(sup, manager)
     assert exit_codes(sup, probe, 60) == {n: 0 for n in MANAGED}, logs(sup, manager)
+
+
+@NEEDS_BOND
+def test_a_bond_only_when_a_manager_activates(domain):  # noqa: F811
+    probe = RosProbe(["bond_test"])
+    try:
+        by_itself = ManagedNode("by_itself", {}, context=probe.context)
+        by_manager = ManagedNode("by_manager", {}, context=probe.context)
+        for node in (by_itself, by_manager):
+            probe.executor.add_node(node)
+            probe.nodes.append(node)
+        by_itself.trigger_configure()
+        by_itself.trigger_activate()
+        assert by_itself.active and by_itself.bond is None
+        client = probe.create_node("manager").create_client(ChangeState, "/by_manager/change_state")
+        for transition in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE):
+            probe.spin(until=client.service_is_ready, timeout_s=60)
+            future = client.call_async(ChangeState.Request(transition=Transition(id=transition)))
+            probe.spin(until=future.done, timeout_s=60)
+            assert future.done() and future.result().success, transition
+        assert by_manager.active and by_manager.bond is not None and by_manager.bond.id == "by_manager"
+        assert by_manager.bond.state == node_bond.WAITING
+    finally:
+        probe.shutdown()
+
+
+@NEEDS_BOND
+def test_the_node_answers_a_manager_that_ends_the_bond(domain):  # noqa: F811
+    probe = RosProbe(["bond_test"])
+    try:
+        bond = node_bond.Bond(probe.create_node("sub_controller"), "sub_controller")
+        manager = probe.create_node("lifecycle_manager")
+        status = manager.msg(node_bond.STATUS_TYPE)
+        heard = []
+        manager.create_subscription(status, "bond", heard.append, QoSProfile(depth=100))
+        pub = manager.create_publisher(status, "bond", QoSProfile(depth=5))
+
+        def manager_says(active: bool) -> None:
+            pub.publish(status(id="sub_controller", instance_id="the-manager", active=active, heartbeat_timeout=4.0,
+                               heartbeat_period=0.1))
+
+        def formed() -> bool:
+            manager_says(True)
+            probe.spin(timeout_s=0.1)
+            return bond.state == node_bond.FORMED
+
+        probe.spin(until=formed, timeout_s=60)
+        assert bond.state == node_bond.FORMED
+        node_says = [m for m in heard if m.instance_id == bond.instance_id]
+        assert node_says and all(m.active for m in node_says)
+        assert node_says[-1].heartbeat_period == pytest.approx(0.1) and node_says[-1].heartbeat_timeout == 4.0
+        heard.clear()
+        manager_says(False)  # the manager ends the bond (it deactivates the node)
+        probe.spin(until=lambda: bond.state == node_bond.BROKEN, timeout_s=60)
+        probe.spin(until=lambda: any(m.instance_id == bond.instance_id for m in heard), timeout_s=60)
+        assert bond.state == node_bond.BROKEN
+        said = [m.active for m in heard if m.instance_id == bond.instance_id]  # heartbeats, then the answer
+        assert said[-1] is False and said.count(False) == 1, said
+        heard.clear()
+        probe.spin(timeout_s=5 * node_bond.HEARTBEAT_PERIOD_S)
+        assert not [m for m in heard if m.instance_id == bond.instance_id], "no heartbeat after the bond broke"
+    finally:
+        probe.shutdown()

@@ -56,6 +56,7 @@ from hdrqn_ros.envs.registration import GRID_IDS
 from hdrqn_ros.nodes.graph_parameters import MAX_MESSAGE_BYTES
 from hdrqn_ros.nodes.node_logger import python_logger
 from hdrqn_ros.nodes.parameters import NodeConfigError, Param, declare_parameters
+from hdrqn_ros.nodes.loopback_navigator import LoopbackNavigator
 from hdrqn_ros.nodes.process import run_node
 from hdrqn_ros.nodes.qos import DEFAULT_QOS, LATCHED_QOS, STEP_QOS, keep_last
 from hdrqn_ros.nodes.ros_messages import bounded_subscription, interface_class, pack
@@ -75,7 +76,8 @@ AMCL_COVARIANCE = [0.0025 if i in (0, 7) else 0.0007 if i == 35 else 0.0 for i i
 
 
 def _triple(value) -> str | None:
-    return None if len(value) == 3 else f"must be [x, y, yaw] (m, m, rad), got {list(value)!r}"
+    ok = len(value) == 3 and all(math.isfinite(v) for v in value)
+    return None if ok else f"must be [x, y, yaw] (m, m, rad), got {list(value)!r}"
 
 
 def _pair(value) -> str | None:
@@ -135,8 +137,11 @@ RESEND_S = 1.0
 
 
 def _pose(x: float, y: float, yaw: float = 0.0) -> Pose:
-    return Pose(position=Point(x=float(x), y=float(y)), orientation=Quaternion(z=math.sin(yaw / 2),
-                                                                                w=math.cos(yaw / 2)))
+    return Pose(position=Point(x=float(x), y=float(y)), orientation=_quaternion(yaw))
+
+
+def _quaternion(yaw: float) -> Quaternion:
+    return Quaternion(z=math.sin(yaw / 2), w=math.cos(yaw / 2))
 
 
 class LoopbackRobotNode(Node):
@@ -145,9 +150,19 @@ class LoopbackRobotNode(Node):
     def __init__(self, **kwargs):
         super().__init__("loopback_robot", **kwargs)
         params = self.params = declare_parameters(self, PARAMETERS, apply=self._apply)
+        self.has_odom_frame = params["odom_frame"] != params["map_frame"]
+        if not self.has_odom_frame and (any(params["map_to_odom"]) or any(params["odom_error"])):
+            raise NodeConfigError(f"map_to_odom and odom_error need an odometry frame: set odom_frame (e.g. odom) "
+                                  f"to other than map_frame {params['map_frame']!r}")
+        if params["base_frame"] in (params["map_frame"], params["odom_frame"]):
+            raise NodeConfigError(f"base_frame {params['base_frame']!r} must differ from map_frame and odom_frame")
         grid = GRID_IDS[params["env"]]
         self.world = LoopbackWorld(grid["layout"], grid["n_goals"], params["seed"], nav_speed_m_s=params["nav_speed"],
-                                   holonomic=params["holonomic"])
+                                   holonomic=params["drive"] == "holonomic", start_yaw=params["start_yaw"],
+                                   map_to_odom=tuple(params["map_to_odom"]), odom_error=tuple(params["odom_error"]),
+                                   inflation_radius_m=params["inflation_radius"],
+                                   cost_scaling_factor=params["cost_scaling_factor"])
+        self.amcl = AmclUpdates(params["amcl_update_min_d"], params["amcl_update_min_a"])
         self.tick_ns = int(round(params["tick"] * 1e9))
         self.now_ns = self.next_costmap_ns = 0  # simulated time (ns), when the next local costmap is due
         self.rejected = Throttle(python_logger(self), "rejected a message")
@@ -160,13 +175,22 @@ class LoopbackRobotNode(Node):
         self.sent_at = 0.0  # wall time the state last went out during a hold
         self.released_key: int | None = -1  # the step whose hold timed out (runs free until the next step;
         #                                     None: the wait for the first step)
+        self.grid_window: tuple | None = None  # the last full local grid's (origin, size): updates go on top
         self._subscribe()
         self.pub_clock = self.create_publisher(ClockMsg, wire.CLOCK, DEFAULT_QOS)
         self.pub_odom = self.create_publisher(Odometry, params["odom_topic"], DEFAULT_QOS)
+        self.pub_tf = self.create_publisher(interface_class("tf2_msgs/msg/TFMessage"), "/tf", TF_QOS) \
+            if params["publish_tf"] else None
+        self.pub_amcl = self.create_publisher(PoseWithCovarianceStamped, params["amcl_pose_topic"], LATCHED_QOS) \
+            if params["amcl_pose_topic"] else None
         self.pub_costmap = self.create_publisher(OccupancyGrid, params["costmap_topic"], LATCHED_QOS)
+        self.pub_updates = None if params["always_send_full_costmap"] else self.create_publisher(
+            interface_class("map_msgs/msg/OccupancyGridUpdate"), params["costmap_topic"] + "_updates", LATCHED_QOS)
         self.pub_global = self.create_publisher(OccupancyGrid, params["global_costmap_topic"], LATCHED_QOS)
         self.pub_places = self.create_publisher(PoseArray, params["subgoal_poses_topic"], LATCHED_QOS)
         self._new_layout()
+        # the navigate_to_pose action server, driving the robot before each tick (loopback_navigator; issue 38)
+        self.navigator = LoopbackNavigator(self, self.world, params["map_frame"], params["tick"])
         period = params["tick"] / params["real_time_factor"] if params["real_time_factor"] > 0 else 0.001
         self.create_timer(period, self._tick, clock=Clock(clock_type=ClockType.STEADY_TIME))  # paces simulated time
 
@@ -201,9 +225,9 @@ class LoopbackRobotNode(Node):
             self.world.stop()
 
     def _on_goal_pose(self, msg: PoseStamped) -> None:
-        if msg.header.frame_id != self.params["frame_id"]:
+        if msg.header.frame_id != self.params["map_frame"]:
             return self.rejected.warn(f"goal_pose in frame {msg.header.frame_id!r}, the map is "
-                                      f"{self.params['frame_id']!r}")
+                                      f"{self.params['map_frame']!r}")
         try:
             self.world.navigate_to(msg.pose.position.x, msg.pose.position.y)
         except ValueError as exc:
@@ -257,9 +281,12 @@ class LoopbackRobotNode(Node):
         if waiting := self._holding():
             return self._hold(waiting)
         self.held_since = None
+        self.navigator.control(self.now_ns)  # issue 38: the navigate_to_pose goal's velocity for this tick
         self.world.advance(self.params["tick"])
         self.now_ns += self.tick_ns
         self._publish_state()
+        if self.amcl.due(self.world.odom_pose):
+            self._publish_amcl()
 
     def _hold(self, waiting: str) -> None:
         """Keep the clock still, sending the state again every :data:`RESEND_S` (a node that joins
@@ -276,36 +303,68 @@ class LoopbackRobotNode(Node):
             self._publish_state()
 
     # -- outputs -------------------------------------------------------------------------------------
-    def _header(self) -> Header:
-        return Header(stamp=Time(nanoseconds=self.now_ns).to_msg(), frame_id=self.params["frame_id"])
+    def _header(self, frame: str) -> Header:
+        return Header(stamp=Time(nanoseconds=self.now_ns).to_msg(), frame_id=frame)
 
     def _new_layout(self) -> None:
-        """The next episode's layout: the robot at its start, the whole map and the places out."""
+        """The next episode's layout: the robot at its start (an initial pose: ``amcl_pose``),
+        the whole map and the places out."""
+        params = self.params
         self.world.new_episode()
         self.next_costmap_ns = self.now_ns  # a costmap of the new place now
         self._publish_state()
-        self.pub_global.publish(self._costmap_msg(self.world.global_costmap()))
-        self.pub_places.publish(PoseArray(header=self._header(), poses=[
+        self.amcl.initial_pose(self.world.odom_pose)
+        self._publish_amcl()
+        self.pub_global.publish(self._costmap_msg(self.world.global_costmap(), params["map_frame"]))
+        self.pub_places.publish(PoseArray(header=self._header(params["map_frame"]), poses=[
             _pose(x, y) for x, y in self.world.layout.goal_xy]))
 
     def _publish_state(self) -> None:
-        """``/clock``, the odometry, and the local costmap when one is due."""
+        """``/clock``, tf, the odometry, and the local costmap when one is due."""
+        params = self.params
         self.pub_clock.publish(ClockMsg(clock=Time(nanoseconds=self.now_ns).to_msg()))
-        x, y, yaw = self.world.pose
+        odom = self.world.odom_pose if self.has_odom_frame else self.world.pose
+        if self.pub_tf is not None:
+            links = [(params["map_frame"], params["odom_frame"], self.world.map_to_odom)] if self.has_odom_frame else []
+            links.append((params["odom_frame"], params["base_frame"], odom))
+            self.pub_tf.publish(self.pub_tf.msg_type(transforms=[TransformStamped(
+                header=self._header(parent), child_frame_id=child,
+                transform=Transform(translation=Vector3(x=float(x), y=float(y)), rotation=_quaternion(yaw)))
+                for parent, child, (x, y, yaw) in links]))
         vx, vy, wz = self.world.velocity
         twist = Twist(linear=Vector3(x=float(vx), y=float(vy)), angular=Vector3(z=float(wz)))
-        self.pub_odom.publish(Odometry(header=self._header(), child_frame_id="base_link",
-                                       pose=PoseWithCovariance(pose=_pose(x, y, yaw)),
+        self.pub_odom.publish(Odometry(header=self._header(params["odom_frame"]), child_frame_id=params["base_frame"],
+                                       pose=PoseWithCovariance(pose=_pose(*odom)),
                                        twist=TwistWithCovariance(twist=twist)))
         if self.now_ns >= self.next_costmap_ns:
-            self.next_costmap_ns = self.now_ns + int(round(self.params["costmap_period"] * 1e9))
-            self.pub_costmap.publish(self._costmap_msg(self.world.local_costmap(self.params["costmap_size"])))
+            self.next_costmap_ns = self.now_ns + int(round(params["costmap_period"] * 1e9))
+            self._publish_local_costmap()
 
-    def _costmap_msg(self, costmap: Costmap) -> OccupancyGrid:
+    def _publish_local_costmap(self) -> None:
+        """The rolling window in the odometry frame: a full grid, or (updates only, the window
+        where it was) an update of the whole window."""
+        costmap = self.world.local_costmap(self.params["costmap_size"], in_odom=self.has_odom_frame)
+        window = (costmap.origin_xy, costmap.width, costmap.height)
+        frame = self.params["odom_frame"]
+        if self.pub_updates is None or window != self.grid_window:
+            self.grid_window = window
+            return self.pub_costmap.publish(self._costmap_msg(costmap, frame))
+        self.pub_updates.publish(self.pub_updates.msg_type(
+            header=self._header(frame), x=0, y=0, width=costmap.width, height=costmap.height,
+            data=pack(np.asarray(costmap.data, np.int8).reshape(-1))))
+
+    def _publish_amcl(self) -> None:
+        if self.pub_amcl is not None:
+            self.pub_amcl.publish(PoseWithCovarianceStamped(
+                header=self._header(self.params["map_frame"]),
+                pose=PoseWithCovariance(pose=_pose(*self.world.pose), covariance=AMCL_COVARIANCE)))
+
+    def _costmap_msg(self, costmap: Costmap, frame: str) -> OccupancyGrid:
         info = MapMetaData(map_load_time=Time(nanoseconds=self.now_ns).to_msg(),
                            resolution=float(costmap.resolution_m), width=int(costmap.width),
                            height=int(costmap.height), origin=_pose(*costmap.origin_xy))
-        return OccupancyGrid(header=self._header(), info=info, data=pack(np.asarray(costmap.data, np.int8).reshape(-1)))
+        return OccupancyGrid(header=self._header(frame), info=info,
+                             data=pack(np.asarray(costmap.data, np.int8).reshape(-1)))
 
 
 def main(argv: list[str] | None = None) -> int:

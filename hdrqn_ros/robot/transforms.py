@@ -13,6 +13,8 @@ maps points in ``source`` into ``target`` (tf2's ``lookupTransform(target, sourc
 walking up from both frames to their common ancestor; between two samples of an edge it
 interpolates (linear in translation, slerp in rotation). ``stamp_ns=None`` is tf2's time 0:
 the latest time every edge on the chain has. Times are ROS times in integer nanoseconds.
+``interpolate(a, b, fraction)`` is that interpolation on its own, ``seconds(ns)`` a time as
+the messages write it.
 
 Errors are :class:`TransformError`\\ s: :class:`FrameMissing` (a frame the buffer never
 heard of, naming the frames it knows and which of them are connected), its subclass
@@ -150,10 +152,11 @@ class TransformError(Exception):
 
 
 class FrameMissing(TransformError):
-    """``frame`` is not in the buffer. ``known``: the frames it has; ``trees``: those frames
-    grouped by the tree they are connected in."""
+    """``frame`` is not in the buffer (``None``: not said, e.g. by tf2_ros). ``known``: the
+    frames it has; ``trees``: those frames grouped by the tree they are connected in."""
 
-    def __init__(self, message: str, frame: str, known: tuple[str, ...] = (), trees: tuple[tuple[str, ...], ...] = ()):
+    def __init__(self, message: str, frame: str | None, known: tuple[str, ...] = (),
+                 trees: tuple[tuple[str, ...], ...] = ()):
         super().__init__(message)
         self.frame, self.known, self.trees = frame, known, trees
 
@@ -164,10 +167,10 @@ class NotConnected(FrameMissing):
 
 class ExtrapolationError(TransformError):
     """``stamp_ns`` is outside edge ``parent -> child``'s history ``[earliest_ns, latest_ns]``
-    on the way from ``source`` to ``target``."""
+    on the way from ``source`` to ``target`` (the edge ``None`` where tf2_ros did not say)."""
 
-    def __init__(self, message: str, target: str, source: str, stamp_ns: int, parent: str, child: str,
-                 earliest_ns: int, latest_ns: int):
+    def __init__(self, message: str, target: str, source: str, stamp_ns: int, parent: str | None = None,
+                 child: str | None = None, earliest_ns: int | None = None, latest_ns: int | None = None):
         super().__init__(message)
         self.target, self.source, self.stamp_ns = target, source, stamp_ns
         self.parent, self.child, self.earliest_ns, self.latest_ns = parent, child, earliest_ns, latest_ns

@@ -13,8 +13,8 @@ Nav2 gives them:
   ``xy_goal_tolerance``, 0.25 m) of the goal: it stops there, not at the goal itself (the
   goal's yaw is not turned to);
 - ABORTED at once when there is no plan, with the planner's error code as Jazzy's
-  ``bt_navigator`` passes it on (``ComputePathToPose``: 204 GOAL_OUTSIDE_MAP, 206
-  GOAL_OCCUPIED, 208 NO_VALID_PATH; 9002 TF_ERROR for a goal in another frame) and
+  ``bt_navigator`` passes it on (``ComputePathToPose``: 202 TF_ERROR for a goal in another
+  frame, 204 GOAL_OUTSIDE_MAP, 206 GOAL_OCCUPIED, 208 NO_VALID_PATH) and
   ``error_msg`` saying why; ABORTED too when a newer goal preempts it (the newer one goes
   on) and when the robot is put back at an episode's start;
 - CANCELED on a cancel request: the robot stops at once.
@@ -50,8 +50,8 @@ FEEDBACK_PERIOD_S = 0.5
 PLAN_ERROR_CODES = {"outside": 204, "occupied": 206, "no_path": 208}
 """Jazzy's ``ComputePathToPose`` result codes (GOAL_OUTSIDE_MAP, GOAL_OCCUPIED, NO_VALID_PATH)
 by :class:`~hdrqn_ros.robot.grid_planner.PlanError` reason."""
-TF_ERROR = 9002
-"""``NavigateToPose`` result code TF_ERROR (the goal's frame is not the map's)."""
+TF_ERROR = 202
+"""Jazzy's ``ComputePathToPose`` TF_ERROR (the goal's frame is not the map's)."""
 SUCCEEDED, ABORTED, CANCELED = "succeed", "abort", "canceled"
 """How a navigation ends: the goal handle's method that says so."""
 STATUS_NAMES = {SUCCEEDED: "SUCCEEDED", ABORTED: "ABORTED", CANCELED: "CANCELED"}

@@ -6,8 +6,8 @@
   every 10 s) and ``/diagnostics`` says WARN, naming the action and that Nav2's
   ``bt_navigator`` serves it.
 - The goal's result ends its option: the outcome goes out on ``navigation_outcome``
-  (:mod:`hdrqn_ros.nodes.navigation_outcomes`) and the critic ends the option at its next
-  step. SUCCEEDED: the navigator stands at the place (the robot environment still decides
+  (:mod:`hdrqn_ros.nodes.navigation_outcomes`) and the critic (``navigation_outcome`` on)
+  ends the option at its next step. SUCCEEDED: the navigator stands at the place (the robot environment still decides
   from the robot's pose whether it is a visit); ABORTED, CANCELED or a rejected goal: the
   option failed, at once, without waiting for ``option_timeout``.
 - An option that ends while its goal is still active (the critic's ``option_timeout``,
@@ -103,8 +103,14 @@ class NavigateGoals:
         self._cancel("the node stopped acting")
 
     def problems(self) -> list[str]:
+        """The wait for the action server (after 2 s); an outcome nobody reads (the critic's
+        ``navigation_outcome`` off: options end only at the place or at ``option_timeout``)."""
         waited = 0.0 if self.waiting_since is None else time.monotonic() - self.waiting_since
-        return [self._waiting(waited)] if waited > WAIT_REPORTED_S else []
+        found = [self._waiting(waited)] if waited > WAIT_REPORTED_S else []
+        if self.sent and self.pub_outcome.get_subscription_count() == 0:
+            found.append(f"nothing subscribes to {self.pub_outcome.topic_name} (is the critic's navigation_outcome "
+                         f"off?): an option ends only at its place or at the critic's option_timeout")
+        return found
 
     def values(self) -> dict[str, str]:
         """The diagnostics' values: the current goal and its feedback, the outcomes so far."""

@@ -6,10 +6,10 @@ goal is rejected) it publishes the outcome on ``navigation_outcome``
 (``std_msgs/Int64MultiArray``, step QoS): one record ``(key, status)``, ``key`` the step
 key at which the option started (its ``subgoal``'s key), ``status`` the goal's
 ``action_msgs/GoalStatus`` code (4 SUCCEEDED, 5 CANCELED, 6 ABORTED; a rejected goal
-reads 6). The critic then ends that option at its next step (``option_done``; the
-intrinsic reward stays the internal critic's: the robot environment still decides from the
-robot's pose whether the place was reached and visited), instead of waiting for the place
-or ``option_timeout``. An outcome that arrives after the critic judged a step is used at
+reads 6). The critic (its ``navigation_outcome`` parameter on) then ends that option at
+its next step (``option_done``; the intrinsic reward stays the internal critic's: the robot
+environment still decides from the robot's pose whether the place was reached and
+visited), instead of waiting for the place or ``option_timeout``. An outcome that arrives after the critic judged a step is used at
 the step after it.
 """
 from __future__ import annotations

@@ -18,7 +18,7 @@ import pytest
 pytest.importorskip("rclpy", reason="ROS 2 Jazzy (rclpy) is not installed here")
 
 from hdrqn_ros.nodes.qos import keep_last  # noqa: E402
-from hdrqn_ros.nodes.tf_listener import stamp_ns, tf2_ros_available  # noqa: E402
+from hdrqn_ros.nodes.tf_listener import TfListener, stamp_ns, tf2_ros_available  # noqa: E402
 
 from conftest import ros_probe  # noqa: E402
 
@@ -165,3 +165,40 @@ def test_lookup_stamps_are_rclpy_times_header_stamps_or_none():
     assert stamp_ns(None) is None
     with pytest.raises(TypeError, match="rclpy.time.Time, a builtin_interfaces/msg/Time or None"):
         stamp_ns(100.25)
+
+
+def test_a_jump_back_of_the_clock_clears_the_buffer(domain):
+    """A simulation restarted: /clock goes from 100 s back to 50 s; samples before the jump
+    would otherwise make every new one look too old."""
+    from rclpy.parameter import Parameter
+
+    from hdrqn_ros.robot.transforms import Transform, TransformBuffer
+
+    probe = ros_probe()
+    try:
+        node = probe.create_node("tf_user", parameter_overrides=[Parameter("use_sim_time", value=True)])
+        buffer = TransformBuffer()
+        listener = TfListener(node, buffer=buffer)
+        clock_node = probe.create_node("sim_clock")
+        clock_pub = clock_node.create_publisher("rosgraph_msgs/msg/Clock", "/clock", keep_last(1))
+
+        def clock_at(seconds: int):
+            def reached() -> bool:
+                msg = clock_node.msg("rosgraph_msgs/msg/Clock")()
+                msg.clock.sec = seconds
+                clock_pub.publish(msg)
+                return node.get_clock().now().nanoseconds == seconds * S
+            probe.spin(until=reached, timeout_s=DEADLINE_S)
+            assert node.get_clock().now().nanoseconds == seconds * S, f"the node's clock never reached {seconds} s"
+
+        clock_at(100)
+        buffer.set_transform("odom", "base_link", 100 * S, Transform.from_xy_yaw(1, 0, 0))
+        clock_at(101)
+        assert buffer.frames() == ("base_link", "odom")  # forward: kept
+        clock_at(50)
+        assert buffer.frames() == ()
+        buffer.set_transform("odom", "base_link", 50 * S, Transform.from_xy_yaw(2, 0, 0))
+        assert listener.pose_in("odom", "base_link") == pytest.approx((2.0, 0.0, 0.0))
+        listener.destroy()
+    finally:
+        probe.shutdown()

@@ -13,11 +13,16 @@ and times. ``stamp``: an ``rclpy.time.Time``, a ``builtin_interfaces/msg/Time`` 
 stamp) or ``None``, the latest time the whole chain has (tf2's time 0). A lookup never waits:
 a caller polls it from its own timer. A transform that cannot be used (a non-unit quaternion,
 a second parent, a cycle) is dropped with a throttled warning and counted in ``rejections``.
+When the node's clock jumps back by :data:`JUMP_BACK_S` or more, or switches between system
+and ROS time (a simulation or a bag restarted), the buffer is cleared with a warning, as
+tf2_ros does: its old history would refuse every new sample as too old.
 """
 from __future__ import annotations
 
 import importlib.util
 
+from rclpy.clock import ClockChange, JumpThreshold
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.time import Time
 
@@ -34,6 +39,8 @@ TF_QOS = keep_last(100)
 TF_STATIC_QOS = keep_last(100, transient_local=True)
 """``/tf_static`` as tf2_ros's listener reads it: reliable, transient-local, keep-last 100."""
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+JUMP_BACK_S = 1.0
+"""A jump back in time of the node's clock by this much or more clears the package's buffer."""
 
 
 def tf2_ros_available() -> bool:
@@ -67,11 +74,11 @@ class TfListener:
     def __init__(self, node: Node, buffer: TransformBuffer | None = None, cache_s: float = 10.0,
                  prefer_tf2_ros: bool = True, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES):
         self.node = node
-        self.rejected = Throttle(python_logger(node), f"rejected a transform on {TF_TOPIC} or {TF_STATIC_TOPIC}")
+        logger = python_logger(node)
+        self.rejected = Throttle(logger, f"rejected a transform on {TF_TOPIC} or {TF_STATIC_TOPIC}")
         self._tf2 = None
         if buffer is None and prefer_tf2_ros and tf2_ros_available():
             import tf2_ros
-            from rclpy.duration import Duration
 
             self.buffer = None
             self._tf2 = tf2_ros.Buffer(cache_time=Duration(nanoseconds=int(cache_s * 1e9)), node=node)
@@ -80,19 +87,27 @@ class TfListener:
         else:
             message = interface_class(TF_MESSAGE)  # MissingRosPackage naming how to get tf2_msgs
             self.buffer = TransformBuffer(cache_s) if buffer is None else buffer
-            logger = python_logger(node)
             self._subscriptions = [
                 bounded_subscription(node, message, TF_TOPIC, lambda msg: self._take(msg, False), TF_QOS,
                                      max_message_bytes, logger),
                 bounded_subscription(node, message, TF_STATIC_TOPIC, lambda msg: self._take(msg, True), TF_STATIC_QOS,
                                      max_message_bytes, logger)]
             self.backend = "hdrqn_ros TransformBuffer" + ("" if tf2_ros_available() else " (tf2_ros is not installed)")
+            self._jump = node.get_clock().create_jump_callback(
+                JumpThreshold(min_forward=None, min_backward=Duration(seconds=-JUMP_BACK_S), on_clock_change=True),
+                post_callback=self._on_jump)
         node.get_logger().info(f"tf: {self.backend}, listening on {TF_TOPIC} and {TF_STATIC_TOPIC}")
 
     @property
     def rejections(self) -> int:
         """Transforms dropped so far (never counted by the tf2_ros backend, which logs its own)."""
         return self.rejected.count
+
+    def _on_jump(self, jump) -> None:
+        self.buffer.clear()
+        switched = jump.clock_change in (ClockChange.ROS_TIME_ACTIVATED, ClockChange.ROS_TIME_DEACTIVATED)
+        what = "switched between system and ROS time" if switched else f"jumped back {-jump.delta.nanoseconds / 1e9} s"
+        self.node.get_logger().warning(f"the clock {what}: the tf buffer was cleared")
 
     def _take(self, msg, static: bool) -> None:
         for stamped in msg.transforms:
@@ -138,6 +153,7 @@ class TfListener:
         if self._tf2 is not None:
             self._tf2_listener.unregister()
         else:
+            self._jump.unregister()
             for subscription in self._subscriptions:
                 self.node.destroy_subscription(subscription)
             self._subscriptions = []

@@ -262,6 +262,11 @@ class TransformBuffer:
             keep = bisect.bisect_left(edge.stamps, edge.stamps[-1] - self.cache_ns)
             del edge.stamps[:keep], edge.transforms[:keep]
 
+    def clear(self) -> None:
+        """Forget every frame (after a jump back in time, as tf2 does)."""
+        with self._lock:
+            self._edges.clear()
+
     def frames(self) -> tuple[str, ...]:
         """Every frame the buffer knows (parents and children), sorted."""
         with self._lock:

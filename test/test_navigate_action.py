@@ -24,12 +24,13 @@ import yaml
 pytest.importorskip("rclpy", reason="ROS 2 Jazzy (rclpy) is not installed here")
 pytest.importorskip("nav2_msgs", reason="nav2_msgs is not built here (scripts/install builds it)")
 
-from action_msgs.msg import GoalStatus, GoalStatusArray  # noqa: E402
 from lifecycle_msgs.msg import Transition  # noqa: E402
 from nav2_msgs.action import NavigateToPose  # noqa: E402
 from rclpy.action import ActionClient  # noqa: E402
 
 from hdrqn_ros.nodes import nav  # noqa: E402
+from hdrqn_ros.nodes.navigation_outcomes import (STATUS_ABORTED, STATUS_CANCELED, STATUS_EXECUTING,  # noqa: E402
+                                                  STATUS_SUCCEEDED)
 from hdrqn_ros.nodes.qos import STEP_QOS  # noqa: E402
 from hdrqn_ros.protocol import wire  # noqa: E402
 from hdrqn_ros.nodes import STACK_DUMP_SIGNAL  # noqa: E402
@@ -59,7 +60,8 @@ class NavProbe:
         self.steps: list[dict] = []
         self.feedback: list[float] = []
         node.create_subscription(nav.POSE_TYPES["odometry"], "/odom", self._on_odom)
-        node.create_subscription(GoalStatusArray, "/navigate_to_pose/_action/status", self._on_status, 100)
+        node.create_subscription("action_msgs/msg/GoalStatusArray", "/navigate_to_pose/_action/status",
+                                 self._on_status, 100)
         node.create_subscription(wire.INTS, "/subgoal", self._on_subgoal, STEP_QOS)
         node.create_subscription(wire.FLOATS, "/env_step", lambda m: self.steps.append(
             wire.read_record(m, wire.STEP_FIELDS)), STEP_QOS)
@@ -69,7 +71,7 @@ class NavProbe:
         self.odom.append((msg.pose.pose.position.x, msg.pose.pose.position.y,
                           math.hypot(twist.linear.x, twist.linear.y), abs(twist.angular.z)))
 
-    def _on_status(self, msg: GoalStatusArray) -> None:
+    def _on_status(self, msg) -> None:
         for status in msg.status_list:
             seen = self.statuses.setdefault(bytes(status.goal_info.goal_id.uuid), [])
             if not seen or seen[-1] != status.status:
@@ -150,7 +152,7 @@ def test_a_reachable_goal_succeeds_stopped_within_tolerance(tmp_path, probe, dri
         for goal in (cell_centre(9, 9), cell_centre(1, 1)):  # two far corners
             handle = probe.send(*goal)
             status, result, _ = probe.result(handle)
-            assert status == GoalStatus.STATUS_SUCCEEDED and result.error_code == 0, (status, result)
+            assert status == STATUS_SUCCEEDED and result.error_code == 0, (status, result)
             probe.until(probe.at_rest, 30, "the robot at rest", sup)
             x, y, _, _ = probe.odom[-1]
             distance = math.hypot(goal[0] - x, goal[1] - y)
@@ -169,7 +171,7 @@ def test_unreachable_goals_abort_at_once_with_jazzys_codes(tmp_path, probe):
                                          ((9.0, 1.0), "map", 204, "off the 11x11 grid"),
                                          (cell_centre(5, 5), "odom", 202, "frame 'odom'")):
             status, result, took = probe.result(probe.send(*goal, frame=frame))
-            assert status == GoalStatus.STATUS_ABORTED and result.error_code == code, (goal, status, result)
+            assert status == STATUS_ABORTED and result.error_code == code, (goal, status, result)
             assert words in result.error_msg and took < 5.0, (result.error_msg, took)
         assert probe.at_rest(), "an aborted goal does not move the robot"
     finally:
@@ -184,13 +186,13 @@ def test_a_newer_goal_preempts_and_a_cancel_stops_the_robot(tmp_path, probe):
         probe.until(lambda: probe.odom[-1][2] > 0, 60, "the robot moving", sup)
         second = probe.send(*cell_centre(1, 9))
         status, result, _ = probe.result(first)
-        assert status == GoalStatus.STATUS_ABORTED and "preempted" in result.error_msg, (status, result)
+        assert status == STATUS_ABORTED and "preempted" in result.error_msg, (status, result)
         probe.until(lambda: probe.odom[-1][2] > 0, 60, "the robot moving to the newer goal", sup)
         cancel = second.cancel_goal_async()
         probe.until(cancel.done, 60, "the cancel's answer", sup)
         assert len(cancel.result().goals_canceling) == 1
         status, _, _ = probe.result(second)
-        assert status == GoalStatus.STATUS_CANCELED
+        assert status == STATUS_CANCELED
         probe.until(probe.at_rest, 30, "the robot at rest after the cancel", sup)
         x, y, _, _ = probe.odom[-1]
         probe.mw.spin(timeout_s=1.0)
@@ -272,7 +274,7 @@ def test_an_option_to_an_unreachable_place_ends_at_the_next_step(tmp_path, probe
     assert codes["robot_environment"] == 0, codes
     episodes = read_jsonl(log)
     assert [e["steps"] for e in episodes] == [max_steps] * 2 and not any(e["visits"] for e in episodes), episodes
-    aborted = probe.goals_ended(GoalStatus.STATUS_ABORTED)
+    aborted = probe.goals_ended(STATUS_ABORTED)
     assert aborted >= len(probe.options) - 2 and len(probe.statuses) >= len(probe.options) - 2, \
         (aborted, len(probe.statuses), len(probe.options))
     # every option ends at the next step, or (an outcome later than the step) the one after
@@ -287,7 +289,7 @@ def test_an_option_to_an_unreachable_place_ends_at_the_next_step(tmp_path, probe
 
 
 def test_reachable_places_are_visited_one_goal_per_option(tmp_path, probe):
-    ended = (GoalStatus.STATUS_SUCCEEDED, GoalStatus.STATUS_ABORTED, GoalStatus.STATUS_CANCELED)
+    ended = (STATUS_SUCCEEDED, STATUS_ABORTED, STATUS_CANCELED)
 
     def goals_sent() -> int:
         found = probe.client.diagnostics.get("hdrqn_ros: /meta_controller")
@@ -305,11 +307,12 @@ def test_reachable_places_are_visited_one_goal_per_option(tmp_path, probe):
     visits = sum(len(e["visits"]) for e in episodes)
     assert visits >= 3 and any(e["success"] for e in episodes), episodes
     assert len(probe.statuses) >= len(probe.options) >= 3, "a goal for each option (the probe may miss the first)"
-    assert probe.goals_ended(GoalStatus.STATUS_SUCCEEDED) >= visits - len(episodes)
+    assert probe.goals_ended(STATUS_SUCCEEDED) >= visits - len(episodes)
     print(f"\nreachable places: {len(episodes)} episodes, {visits} visits, success "
-          f"{sum(e['success'] for e in episodes)}, steps {[e['steps'] for e in episodes]}; {len(probe.statuses)} goals: "
-          f"{probe.goals_ended(GoalStatus.STATUS_SUCCEEDED)} SUCCEEDED, "
-          f"{probe.goals_ended(GoalStatus.STATUS_CANCELED)} CANCELED, {probe.goals_ended(GoalStatus.STATUS_ABORTED)} "
+          f"{sum(e['success'] for e in episodes)}, steps {[e['steps'] for e in episodes]}; "
+          f"{len(probe.statuses)} goals: "
+          f"{probe.goals_ended(STATUS_SUCCEEDED)} SUCCEEDED, "
+          f"{probe.goals_ended(STATUS_CANCELED)} CANCELED, {probe.goals_ended(STATUS_ABORTED)} "
           f"ABORTED")
 
 
@@ -324,12 +327,12 @@ def test_deactivating_the_meta_controller_cancels_its_goal(tmp_path, probe):
         assert client.change("meta_controller", Transition.TRANSITION_ACTIVATE)
 
         def executing() -> list[bytes]:
-            return [goal for goal, seen in probe.statuses.items() if seen[-1] == GoalStatus.STATUS_EXECUTING]
+            return [goal for goal, seen in probe.statuses.items() if seen[-1] == STATUS_EXECUTING]
 
         probe.until(lambda: executing() and probe.odom and probe.odom[-1][2] > 0, 120, "a goal driving the robot", sup)
         goal = executing()[0]
         assert client.change("meta_controller", Transition.TRANSITION_DEACTIVATE)
-        probe.until(lambda: probe.statuses[goal][-1] == GoalStatus.STATUS_CANCELED, 30, "the goal cancelled", sup)
+        probe.until(lambda: probe.statuses[goal][-1] == STATUS_CANCELED, 30, "the goal cancelled", sup)
         probe.until(probe.at_rest, 30, "the robot at rest", sup)
         probe.mw.spin(timeout_s=2.0)
         assert probe.at_rest(30) and not executing(), "the robot stays still while the meta-controller is inactive"

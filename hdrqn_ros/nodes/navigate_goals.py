@@ -23,14 +23,13 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-from action_msgs.msg import GoalStatus
 from rclpy.action import ActionClient
 from rclpy.clock import Clock, ClockType
 from std_msgs.msg import Int64MultiArray
 
 from hdrqn_ros.nodes.controller_node import ControllerNode
 from hdrqn_ros.nodes.nav_adapters import SubgoalPlaces
-from hdrqn_ros.nodes.navigation_outcomes import ENDED, NAVIGATION_OUTCOME, outcome_message
+from hdrqn_ros.nodes.navigation_outcomes import ENDED, NAVIGATION_OUTCOME, STATUS_ABORTED, outcome_message
 from hdrqn_ros.nodes.qos import STEP_QOS
 from hdrqn_ros.nodes.ros_messages import interface_class
 
@@ -159,7 +158,7 @@ class NavigateGoals:
     def _on_response(self, goal: _Goal, future) -> None:
         handle = future.result()
         if handle is None or not handle.accepted:
-            self._ended(goal, REJECTED, GoalStatus.STATUS_ABORTED, "the action server rejected the goal")
+            self._ended(goal, REJECTED, STATUS_ABORTED, "the action server rejected the goal")
             return
         goal.handle = handle
         if goal is not self.goal:  # its option ended before the server accepted it

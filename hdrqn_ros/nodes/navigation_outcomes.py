@@ -9,15 +9,14 @@ key at which the option started (its ``subgoal``'s key), ``status`` the goal's
 reads 6). The critic (its ``navigation_outcome`` parameter on) then ends that option at
 its next step (``option_done``; the intrinsic reward stays the internal critic's: the robot
 environment still decides from the robot's pose whether the place was reached and
-visited), instead of waiting for the place or ``option_timeout``. An outcome that arrives after the critic judged a step is used at
-the step after it.
+visited), instead of waiting for the place or ``option_timeout``. An outcome that arrives
+after the critic judged a step is used at the step after it.
 """
 from __future__ import annotations
 
 from collections import deque
 
 import numpy as np
-from action_msgs.msg import GoalStatus
 from rclpy.node import Node
 from std_msgs.msg import Int64MultiArray
 
@@ -27,8 +26,9 @@ from hdrqn_ros.protocol import wire
 
 NAVIGATION_OUTCOME = "navigation_outcome"
 OUTCOME_FIELDS = ("key", "status")
-ENDED = {GoalStatus.STATUS_SUCCEEDED: "SUCCEEDED", GoalStatus.STATUS_CANCELED: "CANCELED",
-         GoalStatus.STATUS_ABORTED: "ABORTED"}
+STATUS_EXECUTING, STATUS_SUCCEEDED, STATUS_CANCELED, STATUS_ABORTED = 2, 4, 5, 6
+"""``action_msgs/msg/GoalStatus`` codes (its documented constants)."""
+ENDED = {STATUS_SUCCEEDED: "SUCCEEDED", STATUS_CANCELED: "CANCELED", STATUS_ABORTED: "ABORTED"}
 """The terminal goal statuses, by code."""
 REMEMBERED = 64
 """Outcomes kept (the latest options'); an option's outcome is needed only while it runs."""

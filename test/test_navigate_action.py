@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import math
+import signal
 import time
 from pathlib import Path
 
@@ -316,7 +317,10 @@ def test_reachable_places_are_visited_one_goal_per_option(tmp_path, probe):
           f"ABORTED")
 
 
-def test_deactivating_the_meta_controller_cancels_its_goal(tmp_path, probe):
+@pytest.mark.parametrize("stop", ["deactivate", "sigterm"])
+def test_stopping_the_meta_controller_cancels_its_goal(tmp_path, probe, stop):
+    """Deactivated (as Nav2's lifecycle manager does it) or stopped (SIGTERM, as ``ros2 launch``
+    ends it): the goal it was driving ends CANCELED and the robot stands still."""
     sup, _ = meta_only(tmp_path, episodes=50, managed=("meta_controller",), critic={"option_timeout": 0.0},
                        loopback_robot={"nav_speed": 0.02, "real_time_factor": 10.0})
     client = probe.client
@@ -331,10 +335,15 @@ def test_deactivating_the_meta_controller_cancels_its_goal(tmp_path, probe):
 
         probe.until(lambda: executing() and probe.odom and probe.odom[-1][2] > 0, 120, "a goal driving the robot", sup)
         goal = executing()[0]
-        assert client.change("meta_controller", Transition.TRANSITION_DEACTIVATE)
+        if stop == "deactivate":
+            assert client.change("meta_controller", Transition.TRANSITION_DEACTIVATE)
+        else:
+            sup.kill("meta_controller", signal.SIGTERM)
         probe.until(lambda: probe.statuses[goal][-1] == STATUS_CANCELED, 30, "the goal cancelled", sup)
         probe.until(probe.at_rest, 30, "the robot at rest", sup)
         probe.mw.spin(timeout_s=2.0)
-        assert probe.at_rest(30) and not executing(), "the robot stays still while the meta-controller is inactive"
+        assert probe.at_rest(30) and not executing(), "the robot stays still without its meta-controller"
     finally:
-        sup.stop()
+        codes = sup.stop()
+    if stop == "sigterm":
+        assert codes["meta_controller"] == 0, codes

@@ -78,7 +78,7 @@ class NavigateGoals:
     # -- the meta-controller's side --------------------------------------------------------------
     def ready(self) -> bool:
         """A goal can go out now: the action server is there."""
-        return self.client.server_is_ready()
+        return self.client is not None and self.client.server_is_ready()
 
     def replies(self, subgoal: int, key: int) -> list[tuple]:
         """Send the goal of the option that starts at step ``key`` (the previous option's goal,

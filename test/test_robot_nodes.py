@@ -234,13 +234,15 @@ def test_robot_environment_startup_mistakes_exit_2(tmp_path, domain, params, pro
 
 
 def test_bad_messages_are_logged_and_skipped(tmp_path, domain):
-    """A pose in another frame, a non-finite pose and a costmap smaller than the view are
-    refused with a reason; the node goes on and starts an episode from good inputs."""
+    """A pose in a frame tf cannot join to the places' is a wait naming both frames; a
+    non-finite pose and a costmap smaller than the view are refused with a reason; the node
+    goes on and starts an episode from good inputs."""
     table = tmp_path / "places.yaml"
     table.write_text("frame_id: map\nsubgoals: [{x: 1.0, y: 1.0}, {x: 2.0, y: 1.0}]\n")
     sup = Supervisor([ProcessSpec("robot_environment", [sys.executable, "-m", "hdrqn_ros.nodes.robot_environment",
                                                         "--ros-args", "-p", f"subgoal_table:={table}",
-                                                        "-p", "costmap_topic:=/costmap"])], log_dir=tmp_path)
+                                                        "-p", "costmap_topic:=/costmap", "-p", "pose_topic:=/odom"])],
+                     log_dir=tmp_path)
     mw = RosProbe(["probe"])
     node = mw.create_node("probe")
     steps = []
@@ -268,7 +270,8 @@ def test_bad_messages_are_logged_and_skipped(tmp_path, domain):
         def seen(text: str):
             return log.exists() and text in log.read_text()
 
-        for msg, text in ((odom("odom", 1.5), "frame 'odom' but the places are in 'map'"),
+        map_pub.publish(costmap(60))
+        for msg, text in ((odom("odom", 1.5), "no transform odom <- map"),
                           (odom("map", float("nan")), "not finite"), (costmap(10), "less than the view")):
             publish = pose_pub if text != "less than the view" else map_pub
             end = time.monotonic() + 60

@@ -55,21 +55,12 @@ from hdrqn_ros.nodes.place_markers import MARKERS, place_markers
 from hdrqn_ros.nodes.process import run_node
 from hdrqn_ros.nodes.qos import DEFAULT_QOS, LATCHED_QOS, STEP_QOS, keep_last
 from hdrqn_ros.nodes.robot_inputs import Frames, RobotInputs, RobotPose, Waiting
+from hdrqn_ros.nodes.tf_listener import TfListener
 from hdrqn_ros.nodes.ros_messages import ROS_MESSAGES, bounded_subscription, interface_class
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.robot.episode_log import EpisodeLog
 from hdrqn_ros.robot.ordered_visits import OrderedVisits
 from hdrqn_ros.robot.transforms import Transform
-
-try:
-    from map_msgs.msg import OccupancyGridUpdate
-except ImportError:  # map_msgs is not on PyPI: scripts/install builds it
-    OccupancyGridUpdate = None
-try:
-    from hdrqn_ros.nodes.tf_listener import TfListener
-    NO_TF = ""
-except ImportError as exc:  # tf2_msgs is not on PyPI: scripts/install builds it
-    TfListener, NO_TF = None, f"{exc} (scripts/install builds tf2_msgs into the venv; or source ROS 2)"
 
 DEFAULT_MAX_STEPS = 50
 """The domain's step limit (``max_steps`` 0)."""
@@ -78,6 +69,7 @@ POLL_S, WATCHDOG_S = 0.02, 0.5
 looks at once), and between looks for a missing action."""
 WAIT_REPORTED_S, WAIT_REPEATED_S = 2.0, 10.0
 """A wait is reported once it lasts this long (diagnostics WARN, log), and logged again this often."""
+OCCUPANCY_GRID_UPDATE = "map_msgs/msg/OccupancyGridUpdate"
 UPDATES_QOS = keep_last(10, transient_local=True)
 """``<costmap>_updates``: Nav2 offers reliable, transient local; a few deep, so none is lost in a burst."""
 
@@ -175,15 +167,18 @@ class RobotEnvironmentNode(ManagedNode):
             if params["visit_rule"] == "cell" else OrderedVisits(self.num_subgoals, params["goal_tolerance"], max_steps)
         places = nav.SubgoalTable.load(params["subgoal_table"], self.num_subgoals) if params["subgoal_table"] else None
         from_tf = not params["pose_topic"]
-        if from_tf and TfListener is None:
+        try:
+            self.tf, no_tf = TfListener(self, max_message_bytes=params["max_message_bytes"]), ""
+        except ImportError as exc:  # tf2_msgs is not on PyPI: scripts/install builds it
+            self.tf, no_tf = None, str(exc)
+        if from_tf and self.tf is None:
             raise NodeConfigError(f"the robot pose from tf ({params['global_frame']} <- {params['robot_base_frame']}) "
-                                  f"needs tf2_msgs: {NO_TF}; or give a pose topic (pose_topic)")
+                                  f"needs tf2_msgs: {no_tf}; or give a pose topic (pose_topic)")
         topics = {"pose": params["pose_topic"], "costmap": params["costmap_topic"],
                   "costmap_updates": params["costmap_topic"] + "_updates", "global": params["global_costmap_topic"],
                   "global_updates": params["global_costmap_topic"] and params["global_costmap_topic"] + "_updates",
                   "places": params["subgoal_poses_topic"], wire.ACTION: wire.ACTION, wire.SUBGOAL: wire.SUBGOAL}
-        self.tf = TfListener(self) if TfListener is not None else None
-        frames = Frames(self._lookup if self.tf is not None else None, NO_TF)
+        frames = Frames(self._lookup if self.tf is not None else None, no_tf)
         self.inputs = RobotInputs(self.logger, {kind: self.resolve_topic_name(topic) for kind, topic in topics.items()
                                                 if topic}, places, self.num_subgoals, self.view, params["cell_size_m"],
                                   frames, (params["global_frame"], params["robot_base_frame"]) if from_tf else None,
@@ -242,13 +237,14 @@ class RobotEnvironmentNode(ManagedNode):
                 continue
             subscribe(OccupancyGrid, topic, lambda msg, kind=kind: self.inputs.take_costmap(msg, self._now(), kind),
                       LATCHED_QOS)
-            if OccupancyGridUpdate is None:
-                self.get_logger().warning(f"not reading {topic}_updates: map_msgs is not installed (scripts/install "
-                                          f"builds it); Nav2's costmap must then send full grids "
-                                          f"(always_send_full_costmap: true)")
-            else:
-                subscribe(OccupancyGridUpdate, topic + "_updates",
-                          lambda msg, kind=kind: self.inputs.take_update(msg, self._now(), kind), UPDATES_QOS)
+            try:
+                update = interface_class(OCCUPANCY_GRID_UPDATE)
+            except ImportError as exc:  # map_msgs is not on PyPI: scripts/install builds it
+                self.get_logger().warning(f"not reading {topic}_updates: {exc}; Nav2's costmap must then send full "
+                                          f"grids (always_send_full_costmap: true)")
+                continue
+            subscribe(update, topic + "_updates",
+                      lambda msg, kind=kind: self.inputs.take_update(msg, self._now(), kind), UPDATES_QOS)
         if params["subgoal_poses_topic"]:
             subscribe(PoseArray, params["subgoal_poses_topic"], self.inputs.take_places, LATCHED_QOS)
         subscribe(Int64MultiArray, wire.ACTION, self._on_action, STEP_QOS)

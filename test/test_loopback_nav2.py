@@ -17,6 +17,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
+import time
 
 import numpy as np
 import pytest
@@ -225,3 +226,27 @@ def test_deadman_and_costmap_updates_only(tmp_path, domain):
         assert update.header.frame_id == "odom" and (update.x, update.y) == (0, 0)
         assert (update.width, update.height) == (grid.info.width, grid.info.height)
         assert list(update.data) == list(grid.data), "a standing robot's costmap changed"
+
+
+@pytest.mark.parametrize("params, problem", [
+    ({"map_to_odom": "[0.8, 0.4, 0.2]"}, "need an odometry frame: set odom_frame"),
+    ({"odom_frame": "odom", "map_to_odom": "[0.8, 0.4]"}, "map_to_odom: must be [x, y, yaw]"),
+    ({"odom_frame": "odom", "odom_error": "[0.02, 1.5]"}, "odom_error: must be relative errors"),
+    ({"odom_frame": "odom", "base_frame": "odom"}, "base_frame 'odom' must differ"),
+    ({"drive": "tracked"}, "drive must be one of"),
+])
+def test_startup_mistakes_exit_2_naming_the_parameter(tmp_path, domain, params, problem):
+    argv = python_command(NODE_MODULES["loopback_robot"]) + ["--ros-args"]
+    for name, value in params.items():
+        argv += ["-p", f"{name}:={value}"]
+    sup = Supervisor([ProcessSpec("loopback_robot", argv)], log_dir=tmp_path)
+    sup.start()
+    try:
+        end = time.monotonic() + 60
+        while sup.returncodes["loopback_robot"] is None and time.monotonic() < end:
+            sup.poll()
+            time.sleep(0.1)
+    finally:
+        codes = sup.stop()
+    out = (tmp_path / "loopback_robot.log").read_text()
+    assert codes["loopback_robot"] == 2 and problem in out, out[-2000:]

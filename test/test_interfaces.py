@@ -7,6 +7,9 @@ import importlib
 import itertools
 import json
 import os
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -73,6 +76,32 @@ def announced_hash(node, topic: str) -> str:
 def test_ros_interfaces_holds_the_built_packages():
     folders = {path.parent.name for path in (ROOT / "ros_interfaces").glob("*/package.xml")}
     assert folders == set(BUILT_PACKAGES) == {name.split("/")[0] for name in JAZZY_HASHES}
+
+
+def build_interfaces(tmp_path, **env) -> subprocess.CompletedProcess:
+    """``scripts/build_interfaces`` on this test's venv with ``env`` added."""
+    return subprocess.run([str(ROOT / "scripts/build_interfaces")], capture_output=True, text=True, timeout=DEADLINE_S,
+                          env={**os.environ, "VENV": sys.prefix, **env}, cwd=tmp_path)
+
+
+def test_a_sourced_ros_2s_packages_are_left_to_it(tmp_path):
+    for package in BUILT_PACKAGES:
+        index = tmp_path / "opt_ros/share/ament_index/resource_index/packages"
+        index.mkdir(parents=True, exist_ok=True)
+        (index / package).touch()
+    done = build_interfaces(tmp_path, AMENT_PREFIX_PATH=str(tmp_path / "opt_ros"))
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == [f"{package}: provided by {tmp_path / 'opt_ros'} (a sourced ROS 2), not built"
+                                        for package in ("tf2_msgs", "map_msgs", "bond", "nav2_msgs")]
+
+
+def test_a_missing_compiler_names_the_debian_package(tmp_path):
+    (tmp_path / "bin").mkdir()
+    (tmp_path / "bin/dirname").symlink_to(shutil.which("dirname"))
+    done = subprocess.run([str(ROOT / "scripts/build_interfaces"), "--force"], capture_output=True, text=True,
+                          timeout=DEADLINE_S, env={"PATH": str(tmp_path / "bin"), "VENV": sys.prefix, "HOME": str(tmp_path)})
+    assert done.returncode == 1
+    assert "no C/C++ compiler" in done.stderr and "sudo apt install g++" in done.stderr, done.stderr
 
 
 @pytest.mark.parametrize("type_name", sorted(JAZZY_HASHES))

@@ -245,7 +245,7 @@ def test_map_odom_base_link_is_always_the_true_pose(odom_error):
 def test_map_to_odom_drifts_slowly_with_the_odometry_error():
     """2 % distance error: odometry reads 2 % more than the robot drove, map -> odom moves
     back along the way by the difference; standing still it does not move; a new episode
-    keeps it (odometry jumps with the robot)."""
+    moves it instead of odometry (REP 105: odom is continuous)."""
     world = LoopbackWorld("gridworld", 2, 0, holonomic=False, map_to_odom=(0.8, 0.4, 0.2), odom_error=(0.02, 0.0))
     world.new_episode()
     world.x, world.y = world.cell_centre(5, 3)
@@ -260,8 +260,10 @@ def test_map_to_odom_drifts_slowly_with_the_odometry_error():
     for _ in range(30):
         world.advance(0.1)
     assert world.map_to_odom == drift
+    odom = world.odom_pose
     world.new_episode()
-    assert world.map_to_odom == drift and compose(drift, world.odom_pose) == pytest.approx(world.pose)
+    assert world.odom_pose == pytest.approx(odom, abs=1e-12) and world.map_to_odom != drift
+    assert compose(world.map_to_odom, world.odom_pose) == pytest.approx(world.pose, abs=1e-12)
 
 
 @pytest.mark.parametrize("layout, map_to_odom", [("gridworld", (0.8, 0.4, 0.2)), ("fourrooms", (-0.3, 1.1, -2.0))])

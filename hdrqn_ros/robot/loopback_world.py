@@ -18,8 +18,9 @@ Like Nav2's ``nav2_loopback_sim``: no physics, only kinematics, no ROS. Conventi
   the robot's ``base_link``. ``map -> odom`` starts at ``map_to_odom``; odometry reads each
   motion with a relative error ``odom_error`` (distance, rotation), so ``map -> odom``
   drifts while the robot moves, and ``map -> odom -> base_link`` is always the true pose
-  (localisation is perfect). A new episode puts the robot at its start (as an initial pose
-  does) and keeps ``map -> odom``. Poses ``(x, y, yaw)`` compose with :func:`compose`.
+  (localisation is perfect). A new episode puts the robot at its start; odometry stays
+  continuous and ``map -> odom`` jumps, as on an initial pose. Poses ``(x, y, yaw)``
+  compose with :func:`compose`.
 
 Each episode's layout (the robot's start cell and the goals' cells) is the simulator's for
 the same seed, fires left out (:class:`~hdrqn_ros.envs.grid_batch.GridWorldBatch` with
@@ -176,8 +177,9 @@ class LoopbackWorld:
     # -- episodes --------------------------------------------------------------------------------------
     def new_episode(self) -> Layout:
         """The next layout (episode ``k``: the simulator's after reset(seed) and ``k`` more
-        resets); the robot stands at its start cell's centre facing ``start_yaw``, stopped
-        (``map -> odom`` kept: odometry jumps with the robot)."""
+        resets); the robot stands at its start cell's centre facing ``start_yaw``, stopped.
+        Odometry does not see the jump (REP 105: ``odom`` is continuous): ``map -> odom``
+        moves instead, as AMCL's does on an initial pose."""
         episode = 0 if self.layout is None else self.layout.episode + 1
         if episode == 0:
             self.sim.reset(seed=self.seed)
@@ -185,8 +187,11 @@ class LoopbackWorld:
             self.sim.reset_where(np.ones(1, bool))
         agent = tuple(int(v) for v in self.sim.agent_pos[0])
         goals = tuple(tuple(int(v) for v in g) for g in self.sim.goal_pos[0])
+        odom = self.odom_pose
         self.layout = Layout(episode, agent, goals, np.array([self.cell_centre(*g) for g in goals]))
         (self.x, self.y), self.yaw = self.cell_centre(*agent), self.start_yaw
+        if episode > 0:
+            self._map_to_odom = compose(self.pose, inverse(odom))
         self.stop()
         return self.layout
 

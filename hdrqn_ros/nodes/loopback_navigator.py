@@ -159,14 +159,12 @@ class LoopbackNavigator:
         tx, ty = nav.points[0]
         dx, dy = tx - x, ty - y
         step = min(self.world.nav_speed * self.tick_s, math.hypot(dx, dy))
-        heading = math.atan2(dy, dx)
-        c, s = math.cos(yaw), math.sin(yaw)
-        if self.world.holonomic:
-            along = step / max(math.hypot(dx, dy), 1e-12)
-            self.world.command((dx * c + dy * s) * along / self.tick_s, (-dx * s + dy * c) * along / self.tick_s, 0.0,
-                               self.tick_s)
-        else:
-            turn = math.remainder(heading - yaw, 2 * math.pi)
+        if self.world.holonomic:  # straight at the point: its direction in the robot's frame
+            along = step / max(math.hypot(dx, dy), 1e-12) / self.tick_s
+            c, s = math.cos(yaw), math.sin(yaw)
+            self.world.command((dx * c + dy * s) * along, (-dx * s + dy * c) * along, 0.0, self.tick_s)
+        else:  # turn on the spot to face the point, then drive to it
+            turn = math.remainder(math.atan2(dy, dx) - yaw, 2 * math.pi)
             if abs(turn) > 1e-6:
                 self.world.command(0.0, 0.0, math.copysign(min(abs(turn) / self.tick_s, TURN_SPEED), turn),
                                    self.tick_s)

@@ -18,18 +18,18 @@ from conftest import ros_probe
 from hdrqn_ros.nodes.ros_packages import BUILT_PACKAGES, install_hint
 
 JAZZY_HASHES = {
-    # `ros2 topic info -v /tf` on a Jazzy system; shared/DESIGN.md section 5 (checked on Jazzy)
+    # `ros2 topic info -v /tf` on Jazzy systems (several published outputs); shared/DESIGN.md section 5
     "tf2_msgs/msg/TFMessage": "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087",
-    # `ros2 topic info -v` of rviz's costmap updates subscription
+    # a published `ros2 topic info -v` of rviz's costmap updates subscription
     "map_msgs/msg/OccupancyGridUpdate": "RIHS01_c4095b0be2e4363f8978a1570e0293ee093436f1e1c61d99b48502ac317025e8",
     # a Nav2 node's /bond publication as Fast DDS announces it (a captured discovery packet)
     "bond/msg/Status": "RIHS01_87eaccffa254ffffadc0b61600452e8251740f06c25659a2dbda4927fdb1f70a",
-    # nav2_msgs 1.3 (Jazzy); shared/DESIGN.md section 5 (RIHS01_a56dba8a...7eab)
+    # nav2_msgs 1.3 (Jazzy): shared/DESIGN.md section 5 has RIHS01_a56dba8a...7eab from a Jazzy Nav2
     "nav2_msgs/action/NavigateToPose": "RIHS01_a56dba8a3234a1215e610180dc703ae25bbf406dded8b54887891c9732857eab",
-    # what bt_navigator's feedback publisher announces
+    # the feedback topic's type in a published table of a Jazzy robot stack's hashes
     "nav2_msgs/action/NavigateToPose_FeedbackMessage":
         "RIHS01_9d1f6fa2eb975ce733b419ac2e97b134d8ff92b6478b6559feed9a50bdfd82b3",
-    # bt_navigator's send_goal reply (a captured discovery packet)
+    # a Jazzy bt_navigator's send_goal reply as Fast DDS announces it (a captured discovery packet)
     "nav2_msgs/action/NavigateToPose_SendGoal_Response":
         "RIHS01_99f97fcbb07daf024df4b8c3f02f19ce7fa3183fcedfb76b8772a61a371a55fa",
 }
@@ -78,10 +78,10 @@ def test_ros_interfaces_holds_the_built_packages():
     assert folders == set(BUILT_PACKAGES) == {name.split("/")[0] for name in JAZZY_HASHES}
 
 
-def build_interfaces(tmp_path, **env) -> subprocess.CompletedProcess:
-    """``scripts/build_interfaces`` on this test's venv with ``env`` added."""
-    return subprocess.run([str(ROOT / "scripts/build_interfaces")], capture_output=True, text=True, timeout=DEADLINE_S,
-                          env={**os.environ, "VENV": sys.prefix, **env}, cwd=tmp_path)
+def build_interfaces(*args: str, env: dict[str, str]) -> subprocess.CompletedProcess:
+    """``scripts/build_interfaces *args`` on this test's venv, in environment ``env``."""
+    return subprocess.run([str(ROOT / "scripts/build_interfaces"), *args], capture_output=True, text=True,
+                          timeout=DEADLINE_S, env={**env, "VENV": sys.prefix})
 
 
 def test_a_sourced_ros_2s_packages_are_left_to_it(tmp_path):
@@ -89,7 +89,7 @@ def test_a_sourced_ros_2s_packages_are_left_to_it(tmp_path):
         index = tmp_path / "opt_ros/share/ament_index/resource_index/packages"
         index.mkdir(parents=True, exist_ok=True)
         (index / package).touch()
-    done = build_interfaces(tmp_path, AMENT_PREFIX_PATH=str(tmp_path / "opt_ros"))
+    done = build_interfaces(env={**os.environ, "AMENT_PREFIX_PATH": str(tmp_path / "opt_ros")})
     assert done.returncode == 0, done.stderr
     assert done.stdout.splitlines() == [f"{package}: provided by {tmp_path / 'opt_ros'} (a sourced ROS 2), not built"
                                         for package in ("tf2_msgs", "map_msgs", "bond", "nav2_msgs")]
@@ -98,8 +98,7 @@ def test_a_sourced_ros_2s_packages_are_left_to_it(tmp_path):
 def test_a_missing_compiler_names_the_debian_package(tmp_path):
     (tmp_path / "bin").mkdir()
     (tmp_path / "bin/dirname").symlink_to(shutil.which("dirname"))
-    done = subprocess.run([str(ROOT / "scripts/build_interfaces"), "--force"], capture_output=True, text=True,
-                          timeout=DEADLINE_S, env={"PATH": str(tmp_path / "bin"), "VENV": sys.prefix, "HOME": str(tmp_path)})
+    done = build_interfaces("--force", env={"PATH": str(tmp_path / "bin"), "HOME": str(tmp_path)})
     assert done.returncode == 1
     assert "no C/C++ compiler" in done.stderr and "sudo apt install g++" in done.stderr, done.stderr
 

@@ -330,33 +330,42 @@ def test_costmap_updates_only(tmp_path, domain):
 
 def test_start_episode_starts_one_episode(tmp_path, domain):
     """``autostart`` off: each ``~/start_episode`` runs one episode (here to ``max_steps`` 3),
-    then nothing until the next call. Before: episodes ran back to back after one call."""
+    then nothing until the next call. Before: episodes ran back to back after one call. (All
+    in ``map``, the pose on a topic: what the node read before tf.)"""
     from std_srvs.srv import Trigger
 
     robot = FakeRobot()
     robot.plan = robot.moves = []
-    sup = start(tmp_path, "autostart:=false", "max_steps:=3")
+    sup = start(tmp_path, "autostart:=false", "max_steps:=3", "pose_topic:=/amcl_pose",
+                "pose_type:=pose_with_covariance")
+    sent = [0.0]
+
+    def tick() -> None:
+        robot.publish_amcl()
+        if time.monotonic() - sent[0] > 0.5:
+            sent[0] = time.monotonic()
+            robot.costmap.publish(robot.grid("map", (0.0, 0.0)))
+
     client = robot.node.create_client(Trigger, "/robot_environment/start_episode")
 
     def call():
         future = client.call_async(Trigger.Request())
-        robot.run(future.done, 60, "start_episode's answer", sup, every=robot.publish_tf_and_costmap)
+        robot.run(future.done, 60, "start_episode's answer", sup, every=tick)
         return future.result()
 
     def ended() -> int:
         return sum(bool(s["truncated"] or s["terminated"]) for s in robot.steps)
 
     try:
-        robot.publish_static()
         robot.publish_places()
-        robot.run(client.service_is_ready, 60, "the service", sup, every=robot.publish_tf_and_costmap)
+        robot.run(client.service_is_ready, 60, "the service", sup, every=tick)
         assert call().success
-        robot.run(lambda: ended() == 1, 60, "one episode", sup, every=robot.publish_tf_and_costmap)
+        robot.run(lambda: ended() == 1, 60, "one episode", sup, every=tick)
         until = time.monotonic() + 3.0  # 6 step periods: another episode would have started
-        robot.run(lambda: time.monotonic() > until, 10, "a quiet while", sup, every=robot.publish_tf_and_costmap)
+        robot.run(lambda: time.monotonic() > until, 10, "a quiet while", sup, every=tick)
         assert len(robot.steps) == 4 and {s["episode"] for s in robot.steps} == {0}, robot.steps
         assert call().success
-        robot.run(lambda: ended() == 2, 60, "the second episode", sup, every=robot.publish_tf_and_costmap)
+        robot.run(lambda: ended() == 2, 60, "the second episode", sup, every=tick)
     finally:
         sup.stop()
         robot.close()

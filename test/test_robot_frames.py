@@ -370,3 +370,74 @@ def test_start_episode_starts_one_episode(tmp_path, domain):
         sup.stop()
         robot.close()
     assert [int(s["episode"]) for s in robot.steps] == [0] * 4 + [1] * 4
+
+
+# -- the parts on their own (no processes) ------------------------------------------------------------
+def _inputs():
+    import logging
+
+    from hdrqn_ros.nodes.robot_inputs import Frames, RobotInputs
+
+    topics = {"pose": "/pose", "costmap": "/costmap", "costmap_updates": "/costmap_updates", "places": "/places"}
+    return RobotInputs(logging.getLogger("test"), topics, None, 2, 5, 0.25, Frames(None, "no tf in this test"))
+
+
+def _message(type_name: str, frame: str, stamp_s: int, **fields):
+    from hdrqn_ros.nodes.ros_messages import interface_class, pack
+
+    msg = interface_class(type_name)()
+    msg.header.frame_id, msg.header.stamp.sec = frame, stamp_s
+    for name, value in fields.items():
+        setattr(msg, name, pack(value) if isinstance(value, np.ndarray) else value)
+    return msg
+
+
+def test_an_update_is_applied_on_the_last_full_grid_or_refused_with_the_reason():
+    inputs = _inputs()
+    update = "map_msgs/msg/OccupancyGridUpdate"
+    window = {"x": 2, "y": 3, "width": 4, "height": 2, "data": np.full(8, 100, np.int8)}
+    assert not inputs.take_update(_message(update, "odom", 1, **window), 1)
+    assert "no full grid on /costmap yet" in inputs.refused["costmap_updates"]
+    grid = _message(nav.OCCUPANCY_GRID, "odom", 2, data=np.zeros(30 * 30, np.int8))
+    grid.info.width = grid.info.height = 30
+    grid.info.resolution = 0.05
+    assert inputs.take_costmap(grid, 2)
+    assert inputs.take_update(_message(update, "odom", 3, **window), 3)
+    cells = inputs.costmap.value.data.reshape(30, 30)
+    assert (cells[3:5, 2:6] == 100).all() and cells.sum() == 800
+    assert inputs.costmap.value.stamp_ns == 3 * 10**9 and inputs.costmap.arrived_ns == 3
+    for msg, why in ((_message(update, "map", 4, **window), "in frame 'map', the grid on /costmap in 'odom'"),
+                     (_message(update, "odom", 4, **{**window, "x": 28}), "outside the 30 x 30 grid"),
+                     (_message(update, "odom", 4, **{**window, "data": np.zeros(3, np.int8)}), "has 3 data values"),
+                     (_message(update, "odom", 1, **window), "before the grid")):
+        assert not inputs.take_update(msg, 4)
+        assert why in inputs.refused["costmap_updates"], inputs.refused
+    assert inputs.costmap.value.stamp_ns == 3 * 10**9
+
+
+def test_visit_rules():
+    """``tolerance``: within ``goal_tolerance`` (a navigator's stop 0.248 m away counts);
+    ``cell``: in the place's cell (the next cell's centre, 0.25 m away, does not)."""
+    from hdrqn_ros.nodes.robot_environment import CellVisits
+    from hdrqn_ros.robot.ordered_visits import OrderedVisits
+
+    near, tolerance, cell = (1.0, 1.0), OrderedVisits(2, 0.25, 50), CellVisits(2, 0.25, 50)
+    for rule in (tolerance, cell):
+        rule.start([near, (3.0, 3.0)])
+    assert tolerance.where((1.248, 1.0)) == 0 and cell.where((1.248, 1.0)) == NO_SUBGOAL
+    assert cell.where((1.25, 1.0)) == NO_SUBGOAL and cell.where((1.12, 0.88)) == 0
+
+
+def test_frames_without_tf_and_at_the_latest_time():
+    from hdrqn_ros.nodes.robot_inputs import Frames, Waiting
+    from hdrqn_ros.robot.transforms import Transform, TransformBuffer
+
+    assert Frames(None, "why").transform("map", "map", 5, "the places").almost_equal(Transform.identity())
+    with pytest.raises(Waiting, match="the places needs the transform odom <- map, and there is no tf here: why"):
+        Frames(None, "why").transform("odom", "map", 5, "the places")
+    buffer = TransformBuffer()
+    buffer.set_transform("map", "odom", 10, Transform.from_xy_yaw(1.0, 0.0, 0.0))
+    frames = Frames(buffer.lookup)
+    assert frames.transform("map", "odom", 20, "x").translation[0] == 1.0 and frames.fell_back == 1
+    with pytest.raises(Waiting, match="no transform map <- base_link"):
+        frames.transform("map", "base_link", 20, "x")

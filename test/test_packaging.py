@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from hdrqn_ros.nodes.ros_packages import ROS_PACKAGES
+from hdrqn_ros.nodes.ros_packages import BUILT_PACKAGES, ROS_PACKAGES
 
 ROOT = Path(__file__).resolve().parents[1]
 NOT_ON_PYPI = {"launch", "launch_ros"}
@@ -59,7 +59,7 @@ def ros_extra() -> set[str]:
 
 
 def ros_imports(*folders: str) -> dict[str, set[str]]:
-    ros = installed_ros_packages() | NOT_ON_PYPI
+    ros = installed_ros_packages() | NOT_ON_PYPI | set(BUILT_PACKAGES)
     return {module: files for module, files in imported_modules(*folders).items() if module in ros}
 
 
@@ -68,13 +68,15 @@ def test_package_xml_declares_every_ros_package_the_code_imports():
     missing = {module: sorted(files) for module, files in ros_imports("hdrqn_ros", "launch").items()
                if module not in declared}
     assert not missing, f"package.xml lacks <exec_depend> for: {missing}"
+    unbuilt = sorted(set(BUILT_PACKAGES) - declared)  # the robot nodes load them by name, too
+    assert not unbuilt, f"package.xml lacks <exec_depend> for the built interface packages: {unbuilt}"
     test_declared = declared | package_xml_depends("test_depend")
     missing_in_tests = sorted(set(ros_imports("test")) - test_declared)
     assert not missing_in_tests, f"package.xml lacks <test_depend> for: {missing_in_tests}"
 
 
 def test_the_ros_extra_and_the_nodes_list_match_package_xml():
-    nodes = set(ros_imports("hdrqn_ros")) - NOT_ON_PYPI
+    nodes = set(ros_imports("hdrqn_ros")) - NOT_ON_PYPI - set(BUILT_PACKAGES)
     assert ros_extra() == nodes, "setup.py's ros extra must install exactly the ROS packages hdrqn_ros imports"
     assert set(ROS_PACKAGES) == nodes, "hdrqn_ros/nodes/ros_packages.py ROS_PACKAGES must list them too"
 

@@ -10,7 +10,7 @@ import importlib
 import sys
 from functools import partial
 
-from hdrqn_ros.nodes.ros_packages import ROS_PACKAGES, install_hint
+from hdrqn_ros.nodes.ros_packages import BUILT_PACKAGES, ROS_PACKAGES, install_hint
 
 NODES = {"environment": "environment:main", "critic": "critic:main", "meta_controller": "controllers:main_meta",
          "sub_controller": "controllers:main_sub", "learner": "learner:main", "player": "player:main",
@@ -33,7 +33,7 @@ def run(executable: str) -> int:
         entry = getattr(importlib.import_module(f"hdrqn_ros.nodes.{module}"), function)
     except ModuleNotFoundError as exc:
         package = (exc.name or "").split(".")[0]
-        if package not in ROS_PACKAGES:
+        if package not in ROS_PACKAGES + BUILT_PACKAGES:
             raise
         print(f"error: {executable} needs the ROS package {package}, which is not installed: {install_hint(package)}",
               file=sys.stderr)

@@ -7,7 +7,7 @@ the environment node's whole batch in one forward pass, and publishes it on ``su
 With the robot's places (``subgoal_table`` or ``subgoal_poses_topic``) each new option's
 place also goes to the navigator: as one ``navigate_to_pose`` goal whose result ends the
 option (``navigation: action``, :class:`~hdrqn_ros.nodes.navigate_goals.NavigateGoals`; an
-option waits for the action server), or as a ``goal_pose`` message (``navigation: topic``,
+option waits for the action server and the places), or as a ``goal_pose`` message (``navigation: topic``,
 :class:`~hdrqn_ros.nodes.nav_adapters.GoalPoses`). The active goal is cancelled when the
 episode ends, and when the node is deactivated or stops.
 """
@@ -132,12 +132,12 @@ class MetaControllerNode(ControllerNode):
         self.goals = None
         if params["subgoal_table"] or params["subgoal_poses_topic"]:
             places = SubgoalPlaces(self, self.net.num_subgoals)
-            self.goals = NavigateGoals(self, places, self._server_ready) if params["navigation"] == "action" \
+            self.goals = NavigateGoals(self, places, self._goals_ready) if params["navigation"] == "action" \
                 else GoalPoses(self, places)
         self.controller = LockStepMetaController(self, self.goals)
 
-    def _server_ready(self) -> None:
-        """The action server came: take the step that waited for it."""
+    def _goals_ready(self) -> None:
+        """Goals can go out (the action server is there): take a step that waited for it."""
         if self.active and self.controller is not None:
             self.controller.pump()
 

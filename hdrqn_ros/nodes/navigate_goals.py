@@ -1,10 +1,10 @@
 """The meta-controller's options as Nav2 goals with outcomes: one ``navigate_to_pose`` goal
 (``nav2_msgs/action/NavigateToPose``, Jazzy's) per option, through rclpy's ``ActionClient``.
 
-- No goal goes out before the action server is there: an option that starts then waits
-  (the meta-controller does not answer the step), and after 2 s the wait is logged (again
-  every 10 s) and ``/diagnostics`` says WARN, naming the action and that Nav2's
-  ``bt_navigator`` serves it.
+- No goal goes out before the action server is there (nor before the places are known):
+  an option that starts then waits (the meta-controller does not answer the step), and
+  after 2 s the wait is logged (again every 10 s) and ``/diagnostics`` says WARN, naming
+  the action and that Nav2's ``bt_navigator`` serves it.
 - The goal's result ends its option: the outcome goes out on ``navigation_outcome``
   (:mod:`hdrqn_ros.nodes.navigation_outcomes`) and the critic (``navigation_outcome`` on)
   ends the option at its next step. SUCCEEDED: the navigator stands at the place (the robot environment still decides
@@ -55,12 +55,12 @@ class _Goal:
 
 class NavigateGoals:
     """Sends each new option's place (``places``) as a ``navigate_to_pose`` goal
-    (``navigate_action``) and publishes its outcome; ``on_server_ready()`` is called when
-    the action server appears after a wait (the meta-controller then takes the step that
-    waited)."""
+    (``navigate_action``) and publishes its outcome; ``on_ready()`` is called while goals
+    can go out (the meta-controller then takes a step that waited for them)."""
 
-    def __init__(self, node: ControllerNode, places: SubgoalPlaces, on_server_ready: Callable[[], None]):
-        self.node, self.places, self.on_server_ready = node, places, on_server_ready
+    def __init__(self, node: ControllerNode, places: SubgoalPlaces, on_ready: Callable[[], None]):
+        self.node, self.places, self.on_ready = node, places, on_ready
+        self.created_at = time.monotonic()
         self.action_type = interface_class(NAVIGATE_TO_POSE)
         self.name = node.resolve_topic_name(node.params["navigate_action"])
         self.client = ActionClient(node, self.action_type, node.params["navigate_action"])
@@ -77,16 +77,14 @@ class NavigateGoals:
 
     # -- the meta-controller's side --------------------------------------------------------------
     def ready(self) -> bool:
-        """A goal can go out now: the action server is there."""
-        return self.client is not None and self.client.server_is_ready()
+        """A goal can go out now: the places are known and the action server is there."""
+        return self.places.table is not None and self.client is not None and self.client.server_is_ready()
 
     def replies(self, subgoal: int, key: int) -> list[tuple]:
         """Send the goal of the option that starts at step ``key`` (the previous option's goal,
         if still active, is cancelled); nothing to publish on the step itself."""
         self._cancel("its option ended")
         pose = self.places.pose_msg(subgoal, self.node.get_clock().now().nanoseconds)
-        if pose is None:
-            return []  # the places are not known yet
         goal = self.goal = _Goal(key, subgoal, time.monotonic())
         self.feedback = None
         self.sent += 1
@@ -102,10 +100,15 @@ class NavigateGoals:
         self._cancel("the node stopped acting")
 
     def problems(self) -> list[str]:
-        """The wait for the action server (after 2 s); an outcome nobody reads (the critic's
-        ``navigation_outcome`` off: options end only at the place or at ``option_timeout``)."""
-        waited = 0.0 if self.waiting_since is None else time.monotonic() - self.waiting_since
+        """The waits for the action server and for the places (after 2 s); an outcome nobody
+        reads (the critic's ``navigation_outcome`` off: options end only at the place or at
+        ``option_timeout``)."""
+        now = time.monotonic()
+        waited = 0.0 if self.waiting_since is None else now - self.waiting_since
         found = [self._waiting(waited)] if waited > WAIT_REPORTED_S else []
+        if self.places.table is None and now - self.created_at > WAIT_REPORTED_S:
+            found.append(f"no places yet on {self.node.resolve_topic_name(self.node.params['subgoal_poses_topic'])}: "
+                         f"no goal can be sent")
         if self.sent and self.pub_outcome.get_subscription_count() == 0:
             found.append(f"nothing subscribes to {self.pub_outcome.topic_name} (is the critic's navigation_outcome "
                          f"off?): an option ends only at its place or at the critic's option_timeout")
@@ -199,16 +202,18 @@ class NavigateGoals:
                 f"bt_navigator serves it): no goal is sent before it is up")
 
     def _watch_server(self) -> None:
+        """Look whether the server is there: log a wait that lasts, and its end; let a step
+        that waited go on."""
         if self.client is None:
             return
         now = time.monotonic()
         if self.client.server_is_ready():
-            if self.waiting_since is not None:
-                if now - self.waiting_since > WAIT_REPORTED_S:
-                    self.node.get_logger().info(f"the {self.name} action server is up after "
-                                                f"{now - self.waiting_since:.0f} s")
-                self.waiting_since, self.wait_logged = None, -math.inf
-                self.on_server_ready()
+            if self.waiting_since is not None and now - self.waiting_since > WAIT_REPORTED_S:
+                self.node.get_logger().info(f"the {self.name} action server is up after "
+                                            f"{now - self.waiting_since:.0f} s")
+            self.waiting_since, self.wait_logged = None, -math.inf
+            if self.ready():
+                self.on_ready()
             return
         if self.waiting_since is None:
             self.waiting_since = now

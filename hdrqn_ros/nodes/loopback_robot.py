@@ -54,9 +54,9 @@ from std_msgs.msg import Float64MultiArray, Header, Int64MultiArray
 
 from hdrqn_ros.envs.registration import GRID_IDS
 from hdrqn_ros.nodes.graph_parameters import MAX_MESSAGE_BYTES
+from hdrqn_ros.nodes.loopback_navigator import LoopbackNavigator
 from hdrqn_ros.nodes.node_logger import python_logger
 from hdrqn_ros.nodes.parameters import NodeConfigError, Param, declare_parameters
-from hdrqn_ros.nodes.loopback_navigator import LoopbackNavigator
 from hdrqn_ros.nodes.process import run_node
 from hdrqn_ros.nodes.qos import DEFAULT_QOS, LATCHED_QOS, STEP_QOS, keep_last
 from hdrqn_ros.nodes.ros_messages import bounded_subscription, interface_class, pack

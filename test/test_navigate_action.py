@@ -8,8 +8,9 @@
 - the meta-controller waits for a missing action server and says so (log, /diagnostics);
 - the robot graph in meta-only with ``navigation: action``: an option to an unreachable
   place ends at the next step (ABORTED) instead of after ``option_timeout``; reachable
-  places are visited, one goal per option; deactivating the meta-controller cancels the
-  active goal and the robot stops.
+  places are visited, one goal per option; deactivating or stopping (SIGTERM) the
+  meta-controller cancels the active goal and the robot stops; the goal's feedback is on
+  the meta-controller's /diagnostics.
 """
 from __future__ import annotations
 
@@ -320,7 +321,8 @@ def test_reachable_places_are_visited_one_goal_per_option(tmp_path, probe):
 @pytest.mark.parametrize("stop", ["deactivate", "sigterm"])
 def test_stopping_the_meta_controller_cancels_its_goal(tmp_path, probe, stop):
     """Deactivated (as Nav2's lifecycle manager does it) or stopped (SIGTERM, as ``ros2 launch``
-    ends it): the goal it was driving ends CANCELED and the robot stands still."""
+    ends it): the goal it was driving ends CANCELED and the robot stands still. While the goal
+    runs, its feedback is on the meta-controller's /diagnostics."""
     sup, _ = meta_only(tmp_path, episodes=50, managed=("meta_controller",), critic={"option_timeout": 0.0},
                        loopback_robot={"nav_speed": 0.02, "real_time_factor": 10.0})
     client = probe.client
@@ -335,6 +337,14 @@ def test_stopping_the_meta_controller_cancels_its_goal(tmp_path, probe, stop):
 
         probe.until(lambda: executing() and probe.odom and probe.odom[-1][2] > 0, 120, "a goal driving the robot", sup)
         goal = executing()[0]
+
+        def feedback() -> dict[str, str]:
+            found = client.diagnostics.get("hdrqn_ros: /meta_controller")
+            return {} if found is None else {kv.key: kv.value for kv in found.values}
+
+        probe.until(lambda: "distance_remaining_m" in feedback(), 30, "the goal's feedback on /diagnostics", sup)
+        assert float(feedback()["distance_remaining_m"]) > 0 and feedback()["number_of_recoveries"] == "0"
+        assert feedback()["goal"].startswith("subgoal ") and feedback()["navigation"] == "action /navigate_to_pose"
         if stop == "deactivate":
             assert client.change("meta_controller", Transition.TRANSITION_DEACTIVATE)
         else:

@@ -6,7 +6,8 @@ watched by the test's own rclpy node:
   ``/amcl_pose``, that pose; ``/odom`` in ``odom`` is tf's ``odom -> base_link``;
 - ``/amcl_pose`` once at the start, then only after motion (none while the robot stands);
 - the local costmap in ``odom``: through tf, each lethal cell is a wall of the map and every
-  cell whose centre is in a wall is lethal, with Nav2's inflation costs around them;
+  cell whose centre is in a wall is lethal, with Nav2's inflation costs around them; the
+  global costmap in ``map``;
 - the 1 s command deadman: one command drives the robot for 1 s of simulated time;
 - ``always_send_full_costmap: false``: a standing robot's local costmap comes as
   ``map_msgs/OccupancyGridUpdate`` on ``local_costmap/costmap_updates``, a moving one's as
@@ -87,6 +88,9 @@ class Robot:
         node.create_subscription("map_msgs/msg/OccupancyGridUpdate", "/local_costmap/costmap_updates",
                                  self.updates.append, keep_last(100, transient_local=True))
         node.create_subscription("geometry_msgs/msg/PoseArray", "/subgoal_poses", self.places.append, LATCHED_QOS)
+        self.global_grids: list = []
+        node.create_subscription("nav_msgs/msg/OccupancyGrid", "/global_costmap/costmap", self.global_grids.append,
+                                 LATCHED_QOS)
         self.cmd_vel = node.create_publisher("geometry_msgs/msg/Twist", "/cmd_vel")
         self.sup.start()
 
@@ -136,7 +140,8 @@ def test_frames_odom_amcl_and_the_costmap_in_odom(tmp_path, domain):
     world = LoopbackWorld("gridworld", 2, SEED, start_yaw=0.5)
     start = world.new_episode() and world.pose
     try:
-        robot.until(lambda: robot.amcl and robot.tf and robot.grids and robot.odom, "amcl_pose, tf, costmap, odom")
+        robot.until(lambda: robot.amcl and robot.tf and robot.grids and robot.odom and robot.global_grids,
+                    "amcl_pose, tf, costmaps, odom")
         first_tf = min(robot.tf)
         standing = len(robot.amcl)
         robot.probe.spin(timeout_s=2.0)  # 10 s of simulated time standing
@@ -167,6 +172,12 @@ def test_frames_odom_amcl_and_the_costmap_in_odom(tmp_path, domain):
     assert len(both) >= 100
     for msg in both:
         assert close_to(pose_of(msg.pose.pose), robot.tf[stamp_ns(msg.header)][("odom", "base_link")])
+    # the global costmap in map: the walls lethal, inflated around
+    whole = robot.global_grids[-1]
+    assert whole.header.frame_id == "map" and (whole.info.width, whole.info.height) == (55, 55)
+    data = np.asarray(whole.data, np.int64).reshape(55, 55)
+    np.testing.assert_array_equal(data == 100, np.kron(world.walls[::-1], np.ones((5, 5), bool)))
+    assert 99 in data and len(set(data[data < 99].tolist())) > 10, "no inflation costs in the global costmap"
     # the local costmap in odom agrees with the map through tf at its stamp
     assert {g.header.frame_id for g in robot.grids} == {"odom"}
     seen = [g for g in robot.grids if stamp_ns(g.header) in robot.tf]  # (the first may predate tf's matching)

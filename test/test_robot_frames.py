@@ -40,12 +40,14 @@ MAP_TO_ODOM = (0.8, 0.4, 0.2)
 """x, y (m), yaw (rad) of ``odom`` in ``map``: a localised robot's offset."""
 START = (1.0, 1.0, 0.0)
 """The robot in ``map``."""
-PLACES = ((1.75, 1.0), (1.75, 1.75))
+PLACES = ((1.5, 1.0), (1.5, 1.5))
 """Blue, green in ``map``."""
-STOPS = ((1.55, 1.0, 0.0), (1.75, 1.55, math.pi / 2))
+STOPS = ((1.3, 1.0, 0.0), (1.5, 1.3, math.pi / 2))
 """Where the robot stops after steps 0 and 1: 0.2 m short of each place, as Nav2 does."""
 RESOLUTION, CELLS = 0.05, 80
 """The local costmap: 4 m x 4 m."""
+WALL_BELOW_Y = 0.6
+"""The map's wall: every cell whose centre has ``y`` (m, ``map``) below this."""
 
 
 def _planar(x: float, y: float, yaw: float) -> np.ndarray:
@@ -137,9 +139,15 @@ class FakeRobot:
         return msg
 
     def odom_grid(self):
-        """The local costmap in ``odom``, centred on the robot's start."""
-        x, y, _ = self.odom_pose()
-        return self.grid("odom", (x - CELLS * RESOLUTION / 2, y - CELLS * RESOLUTION / 2))
+        """The local costmap in ``odom``, centred on the robot's start: the map's wall
+        (:data:`WALL_BELOW_Y`) seen through ``map -> odom``, cell by cell."""
+        x0, y0 = (v - CELLS * RESOLUTION / 2 for v in _in(np.linalg.inv(_planar(*MAP_TO_ODOM)), START[:2]))
+        msg = self.grid("odom", (x0, y0))
+        centres = (np.arange(CELLS) + 0.5) * RESOLUTION
+        xs, ys = np.meshgrid(x0 + centres, y0 + centres)  # row-major from the origin, as OccupancyGrid
+        map_y = (_planar(*MAP_TO_ODOM) @ np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)]))[1]
+        msg.data = self.node.pack(np.where(map_y < WALL_BELOW_Y, 100, 0).astype(np.int8))
+        return msg
 
     def update(self, frame: str, x: int, y: int, width: int, height: int, value: int):
         msg = self.node.msg("map_msgs/msg/OccupancyGridUpdate")()
@@ -220,24 +228,23 @@ def start(tmp_path: Path, *params: str) -> Supervisor:
 
 
 def expected_observation(robot_map: tuple[float, float, float], places) -> np.ndarray:
-    """The observation the simulator's drawing gives of the free odom grid with the robot and
-    ``places`` (map frame; ``None``: visited) moved into ``odom`` by this test's own arithmetic."""
-    odom_from_map = np.linalg.inv(_planar(*MAP_TO_ODOM))
-    x0, y0 = (v - CELLS * RESOLUTION / 2 for v in _in(odom_from_map, START[:2]))
+    """The observation the simulator's drawing gives in ``map`` itself, of the map's wall with
+    the robot and ``places`` (``None``: visited), no transform involved."""
     info = SimpleNamespace(width=CELLS, height=CELLS, resolution=RESOLUTION,
-                           origin=SimpleNamespace(position=SimpleNamespace(x=x0, y=y0)))
-    grid = SimpleNamespace(info=info, data=np.zeros(CELLS * CELLS, np.int8))
-    return nav.costmap_to_observation(grid, robot_xy=_in(odom_from_map, robot_map[:2]), view_cells=5,
-                                      cell_size_m=0.25, unknown="outside",
-                                      goals_xy=[None if p is None else _in(odom_from_map, p) for p in places])
+                           origin=SimpleNamespace(position=SimpleNamespace(x=0.0, y=0.0)))
+    rows = (np.arange(CELLS) + 0.5) * RESOLUTION < WALL_BELOW_Y
+    grid = SimpleNamespace(info=info, data=np.where(rows[:, None], 100, 0).astype(np.int8).repeat(CELLS, 1).ravel())
+    return nav.costmap_to_observation(grid, robot_xy=robot_map[:2], view_cells=5, cell_size_m=0.25,
+                                      unknown="outside", goals_xy=list(places))
 
 
 def test_pose_from_tf_costmap_in_odom_places_in_map(tmp_path, domain):
     """A non-identity ``map -> odom`` (0.8 m, 0.4 m, 0.2 rad) on ``/tf``, a static
     ``base_footprint -> base_link`` on ``/tf_static``, the local costmap in ``odom``, the places
-    in ``map``: the episode runs; each observation shows the places where they are in
-    ``odom``; a robot that stops 0.2 m short of each place visits it (``goal_tolerance``
-    0.25 m by default). Before: every costmap was refused (frame ``odom``, places in ``map``)."""
+    in ``map``: the episode runs; each observation is the one drawn in ``map`` itself (the
+    map's wall along the view's bottom row, the places where they are: north-up is the map's
+    +y); a robot that stops 0.2 m short of each place visits it (``goal_tolerance`` 0.25 m by
+    default). Before: every costmap was refused (frame ``odom``, places in ``map``)."""
     robot = FakeRobot()
     sup = start(tmp_path)
     try:

@@ -270,7 +270,6 @@ def test_bad_messages_are_logged_and_skipped(tmp_path, domain):
         def seen(text: str):
             return log.exists() and text in log.read_text()
 
-        map_pub.publish(costmap(60))
         for msg, text in ((odom("odom", 1.5), "no transform odom <- map"),
                           (odom("map", float("nan")), "not finite"), (costmap(10), "less than the view")):
             publish = pose_pub if text != "less than the view" else map_pub
@@ -278,6 +277,7 @@ def test_bad_messages_are_logged_and_skipped(tmp_path, domain):
             while not seen(text):
                 sup.poll()
                 assert time.monotonic() < end and sup.returncodes["robot_environment"] is None, log.read_text()
+                map_pub.publish(costmap(60))  # fresh: the pose is what the node waits for
                 publish.publish(msg)
                 mw.spin(timeout_s=0.2)
         map_pub.publish(costmap(60))

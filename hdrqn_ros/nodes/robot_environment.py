@@ -15,7 +15,8 @@ Frames as REP 105 has them: the robot's pose is tf's ``global_frame`` <- ``robot
 (``map <- base_link``) at the step's time (the latest after ``pose_timeout_s``), or a pose
 topic's (``pose_topic``: Odometry, PoseStamped or PoseWithCovarianceStamped, in its own
 frame). Each costmap is used in its own frame at its own stamp: the robot and the places are
-transformed into it; the places (a ``subgoal_table`` YAML or a latched
+transformed into it, and a north-up view keeps the pose frame's +y up (the map's grid, as the
+simulator's); the places (a ``subgoal_table`` YAML or a latched
 ``geometry_msgs/PoseArray`` on ``subgoal_poses_topic``) may be in any frame of the tree.
 Full grids come on ``costmap_topic``, Nav2's ``map_msgs/OccupancyGridUpdate`` s on
 ``<costmap_topic>_updates`` (``always_send_full_costmap: false``). A place is visited by the
@@ -31,6 +32,7 @@ steps only while active.
 """
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -122,7 +124,7 @@ PARAMETERS = {
 
 class CellVisits(OrderedVisits):
     """:class:`OrderedVisits` by the simulator's rule: the robot is at a place when it is in
-    the place's cell, the square of ``cell_m`` centred on it (axes of the places' frame)."""
+    the place's cell, the square of ``cell_m`` centred on it (axes of the pose's frame)."""
 
     def __init__(self, n_goals: int, cell_m: float, max_steps: int):
         super().__init__(n_goals, cell_m / 2, max_steps)
@@ -409,8 +411,9 @@ class RobotEnvironmentNode(ManagedNode):
             into[kind] = frames.transform(grid.frame_id, pose.frame, grid.stamp_ns,
                                           f"the costmap on {topic} (frame {grid.frame_id!r})")
         if pose.latest and not (self.scene is not None and self.scene.pose.latest):
-            self.get_logger().info(f"no pose at the step's time within pose_timeout_s ({params['pose_timeout_s']:g} "
-                                   f"s): stepping on the latest ({self.inputs.pose_frames and 'tf' or 'topic'})")
+            source = "tf" if inputs.pose_frames else inputs.topics["pose"]
+            self.get_logger().info(f"no pose from {source} at the step's time within pose_timeout_s "
+                                   f"({params['pose_timeout_s']:g} s): stepping on the latest")
         return Scene(pose, goal_xy, into["costmap"], into["global"])
 
     def _start_when_ready(self, now: int) -> None:
@@ -497,12 +500,13 @@ class RobotEnvironmentNode(ManagedNode):
         grid, images_grid = inputs.costmap.value, inputs.places_costmap
 
         def drawn(to: Transform) -> tuple[tuple[float, float], dict]:
-            """The robot's (x, y) and the drawing's settings in the frame ``to`` maps into."""
+            """The robot's (x, y) and the drawing's settings in the frame ``to`` maps into;
+            image up: the robot's heading, or (north-up) the pose frame's +y."""
             x, y, yaw = scene.robot_in(to)
             goals = [None if xy is None else tuple(to.apply(xy)) for xy in self.task.uncollected_xy()]
+            up = yaw if params["heading_up"] else (None if to.yaw == 0.0 else math.pi / 2 + to.yaw)
             return (x, y), {"view_cells": self.view, "cell_size_m": params["cell_size_m"], "lethal": params["lethal"],
-                            "robot_yaw": yaw if params["heading_up"] else None, "unknown": params["unknown_cells"],
-                            "goals_xy": goals}
+                            "robot_yaw": up, "unknown": params["unknown_cells"], "goals_xy": goals}
 
         robot_xy, style = drawn(scene.to_costmap)
         obs = nav.costmap_to_observation(grid, robot_xy=robot_xy, **style)

@@ -16,7 +16,7 @@ PROCESS_MODULES = {"test_graph", "test_faults", "test_multihost", "test_player",
                    "test_managed_nodes", "test_deploy_nodes", "test_loopback", "test_ros_tooling", "test_bounds",
                    "test_untrusted_data", "test_lifecycle_bonds", "test_interfaces", "test_loopback_nav2",
                    "test_tf_listener", "test_navigate_action",
-                   "test_robot_frames"}
+                   "test_robot_frames", "test_motion_primitives_nodes"}
 """Modules whose tests start node processes or join DDS (each on a domain of its own): marked
 ``processes``. ``scripts/test`` runs them one at a time in one pytest while a second pytest
 runs every other test beside it (the load of one busy core, which ``scripts/stress`` shows

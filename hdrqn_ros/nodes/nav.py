@@ -17,6 +17,7 @@ from std_msgs.msg import Header
 
 from hdrqn_ros.envs.gridworld import AGENT, FREE, GOAL0, GOAL_NAMES, OUTSIDE, PALETTE, WALL
 from hdrqn_ros.protocol.arrays import as_array
+from hdrqn_ros.robot.motion_primitives import Motion, motion_of
 from hdrqn_ros.yaml_files import read_mapping
 
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
@@ -30,6 +31,8 @@ POSE_TYPES = {"odometry": "nav_msgs/msg/Odometry", "pose": POSE_STAMPED,
 ``PoseStamped``, ``/amcl_pose``."""
 LETHAL = 65
 """Default threshold: OccupancyGrid cost (0..100) at or above it is drawn as a wall."""
+OBSERVATION_UP = ("north_up", "heading_up")
+"""An action table's ``observation``: how the agent's image is turned (what a move's direction means)."""
 _POSE_KEYS = {"x", "y", "yaw"}
 _TWIST_KEYS = {f"{kind}_{axis}" for kind in ("linear", "angular") for axis in "xyz"}
 
@@ -140,20 +143,29 @@ class SubgoalTable:
 
 
 class ActionTable:
-    """One velocity command per action index; ``stamped`` selects TwistStamped over Twist."""
+    """One velocity command per action index; ``stamped`` selects TwistStamped over Twist.
+    ``observation``: whether the agent's image is ``north_up`` (a move's direction is the
+    frame's, whatever the robot's yaw) or ``heading_up`` (the robot's heading); by default
+    heading-up when an action turns, else north-up. ``holonomic``: an action moves sideways."""
 
     def __init__(self, commands: list[dict[str, float]], stamped: bool = False, frame_id: str = "base_link",
-                 source: str = "<table>"):
+                 source: str = "<table>", observation: str | None = None):
         self.commands, self.stamped, self.frame_id, self.source = commands, bool(stamped), frame_id, source
+        if observation is None:
+            observation = "heading_up" if any(c.get("angular_z", 0.0) for c in commands) else "north_up"
+        if observation not in OBSERVATION_UP:
+            raise NavConfigError(f"{source}: observation must be one of {list(OBSERVATION_UP)}, got {observation!r}")
+        self.heading_up = observation == "heading_up"
+        self.holonomic = any(c.get("linear_y", 0.0) for c in commands)
 
     @classmethod
     def load(cls, path, num_actions: int) -> "ActionTable":
-        data = _read(path, {"stamped", "frame_id", "actions"}, {"actions"})
+        data = _read(path, {"stamped", "frame_id", "observation", "actions"}, {"actions"})
         stamped = data.get("stamped", False)
         if not isinstance(stamped, bool):
             raise NavConfigError(f"{path}: stamped must be true or false, got {stamped!r}")
         entries = _entries(path, data, "actions", _TWIST_KEYS, set(), num_actions)
-        return cls(entries, stamped, data.get("frame_id", "base_link"), str(path))
+        return cls(entries, stamped, data.get("frame_id", "base_link"), str(path), data.get("observation"))
 
     def __len__(self) -> int:
         return len(self.commands)
@@ -170,6 +182,19 @@ class ActionTable:
     def moves(self, action: int) -> bool:
         """Whether action ``action``'s command is not the zero one."""
         return any(self.commands[_index(action, len(self), "action")].values())
+
+    def motion(self, action: int) -> Motion:
+        """Action ``action``'s motion primitive (a move of one cell, a 90 degree turn, or stay);
+        NavConfigError for a command that both moves and turns."""
+        cmd = self.commands[_index(action, len(self), "action")]
+        try:
+            return motion_of(cmd.get("linear_x", 0.0), cmd.get("linear_y", 0.0), cmd.get("angular_z", 0.0))
+        except ValueError as exc:
+            raise NavConfigError(f"{self.source}: action {action}: {exc}") from exc
+
+    def velocity_msg(self, vx: float, vy: float, wz: float, stamp=(0, 0)) -> Twist | TwistStamped:
+        """The command body-frame ``(vx, vy, wz)`` (m/s, m/s, rad/s), stamped ``stamp`` if the table is."""
+        return self._msg({"linear_x": vx, "linear_y": vy, "angular_z": wz}, stamp)
 
     def _msg(self, cmd: dict[str, float], stamp) -> Twist | TwistStamped:
         linear, angular = (Vector3(**{axis: cmd.get(f"{kind}_{axis}", 0.0) for axis in "xyz"})

@@ -44,7 +44,7 @@ STALE_CHECK_S = 0.05
 
 
 class VelocityDriver:
-    """Drives the robot with the sub-controller's actions: one command per action on
+    """Drives the robot with the sub-controller's actions (``drive: commands``): one command per action on
     ``cmd_vel_topic`` (the :class:`~hdrqn_ros.nodes.nav.ActionTable`'s ``Twist`` or
     ``TwistStamped``), the zero command when the episode ends or the node stops, and when no
     observation came for ``stale_after_s`` (wall time) while the robot moves."""
@@ -63,8 +63,8 @@ class VelocityDriver:
         self.moving = action is not None and self.table.moves(action)
         return self.pub, self.table.stop_msg(stamp) if action is None else self.table.twist_msg(action, stamp)
 
-    def observed(self) -> None:
-        """An observation arrived: the commands go on."""
+    def observed(self, frame_id: str = "") -> None:
+        """An observation arrived (drawn in ``frame_id``): the commands go on."""
         self.observed_at = time.monotonic()
 
     def stale(self) -> bool:
@@ -76,6 +76,13 @@ class VelocityDriver:
             return [f"the observation is older than stale_after_s ({self.node.params['stale_after_s']} s): the robot "
                     f"is stopped"]
         return []
+
+    def values(self) -> dict[str, str]:
+        """How it drives, for the diagnostics."""
+        return {"drive": f"one command per action on {self.topic}"}
+
+    def release(self) -> None:
+        """Nothing to release beyond the publisher (destroyed with the node's entities)."""
 
     def halt(self) -> None:
         """The zero command, delivered before the node stops acting (at most :data:`DELIVERY_LIMIT_S`)."""

@@ -5,8 +5,10 @@ stacked with the option's subgoal image (flat DQN/DRQN: the observation alone), 
 environment node's whole batch in one forward pass; for hDRQNv2 it also hands the
 meta-controller its LSTM state (``sub_state``) where an option may end. Or free-running on
 a Nav2 local costmap (``costmap``: :mod:`hdrqn_ros.nodes.costmap_controller`). With an
-``action_table`` its actions also drive the robot (``cmd_vel``:
-:class:`~hdrqn_ros.nodes.nav_adapters.VelocityDriver`).
+``action_table`` its actions also drive the robot on ``cmd_vel``: each as an exact motion
+primitive, a cell or 90 degrees in closed loop (``drive: primitives``:
+:class:`~hdrqn_ros.nodes.primitive_driver.PrimitiveDriver`), or as one command held for the
+step (``drive: commands``: :class:`~hdrqn_ros.nodes.nav_adapters.VelocityDriver`).
 """
 from __future__ import annotations
 
@@ -25,12 +27,14 @@ from hdrqn_ros.nodes.lockstep import LockStepController
 from hdrqn_ros.nodes.nav import ActionTable, SubgoalTable
 from hdrqn_ros.nodes.nav_adapters import SUBGOAL_TABLE, VELOCITY_PARAMETERS, VelocityDriver
 from hdrqn_ros.nodes.parameters import NodeConfigError
+from hdrqn_ros.nodes.primitive_driver import PRIMITIVE_PARAMETERS, PrimitiveDriver
 from hdrqn_ros.nodes.qos import STEP_QOS
 from hdrqn_ros.nodes.ros_messages import ROS_MESSAGES
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.follower import all_done, done
 
-PARAMETERS = {**CONTROLLER_PARAMETERS, **OBSERVATION_PARAMETERS, **VELOCITY_PARAMETERS, **SUBGOAL_TABLE}
+PARAMETERS = {**CONTROLLER_PARAMETERS, **OBSERVATION_PARAMETERS, **VELOCITY_PARAMETERS, **PRIMITIVE_PARAMETERS,
+              **SUBGOAL_TABLE}
 """``subgoal_table``: with ``observation_source: costmap``, where each subgoal's image is centred."""
 
 
@@ -57,7 +61,7 @@ class LockStepSubController(LockStepController):
 
     def _on_observation(self, msg: Image) -> None:
         if self.driver is not None:
-            self.driver.observed()
+            self.driver.observed(msg.header.frame_id)
         self.on_image(wire.OBSERVATION, msg)
 
     def _on_subgoal(self, msg: Int64MultiArray) -> None:
@@ -162,7 +166,7 @@ class SubControllerNode(ControllerNode):
 
     def build_parts(self) -> None:
         params = self.params
-        self.driver = VelocityDriver(self, ActionTable.load(params["action_table"], self.net.num_actions)) \
+        self.driver = self._driver(ActionTable.load(params["action_table"], self.net.num_actions)) \
             if params["action_table"] else None
         if params["observation_source"] == "costmap":
             places = SubgoalTable.load(params["subgoal_table"], self.net.num_subgoals) if params["subgoal_table"] \
@@ -171,6 +175,16 @@ class SubControllerNode(ControllerNode):
         else:
             self.controller = LockStepSubController(self, self.driver)
 
+    def _driver(self, table: ActionTable) -> VelocityDriver:
+        params = self.params
+        if params["drive"] == "commands":
+            return VelocityDriver(self, table)
+        try:
+            return PrimitiveDriver(self, table)
+        except ImportError as exc:  # tf2_msgs is not on PyPI: scripts/install builds it
+            raise NodeConfigError(f"drive primitives with pose_source tf needs tf2_msgs: {exc}; or set pose_source "
+                                  f"odometry (odom_topic {params['odom_topic']!r}) or drive commands") from exc
+
     def stop(self) -> None:
         """Stop acting, and stop the robot (the zero command)."""
         if self.driver is not None:
@@ -178,7 +192,13 @@ class SubControllerNode(ControllerNode):
 
     def teardown(self) -> None:
         super().teardown()
+        if self.driver is not None:
+            self.driver.release()
         self.driver = None
 
     def problems(self) -> list[str]:
         return super().problems() + (self.driver.problems() if self.driver is not None else [])
+
+    def health(self) -> tuple[int, str, dict[str, str]]:
+        level, message, values = super().health()
+        return level, message, {**values, **(self.driver.values() if self.driver is not None else {})}

@@ -173,18 +173,19 @@ class NavigateGoals:
         response = future.result()
         name = ENDED.get(response.status, f"status {response.status}")
         result = response.result
-        why = "" if name == "SUCCEEDED" else \
-            f"error_code {result.error_code}" + (f": {result.error_msg}" if result.error_msg else "")
+        why = ": ".join(part for part in (f"error_code {result.error_code}" if result.error_code else "",
+                                           result.error_msg) if part)
         self._ended(goal, name, response.status, why)
 
     def _ended(self, goal: _Goal, name: str, status: int, why: str) -> None:
-        """``goal`` ended (``name``, GoalStatus ``status``): counted, logged, and, when it is the
-        current option's, its outcome published (the option ends)."""
+        """``goal`` ended (``name``, GoalStatus ``status``): counted, logged (a warning when the
+        current option's goal failed), and, when it is the current option's, its outcome
+        published (the option ends)."""
         self.counts[name] = self.counts.get(name, 0) + 1
         took = time.monotonic() - goal.sent_at
         self.last_outcome = f"{name} after {took:.1f} s" + (f" ({why})" if why else "")
         text = f"{self.name} goal of subgoal {goal.subgoal}: {self.last_outcome}"
-        if name == "SUCCEEDED":
+        if name == "SUCCEEDED" or goal is not self.goal:  # arrived, or cancelled here when its option ended
             self.node.get_logger().info(text)
         else:
             self.node.get_logger().warning(text)

@@ -75,7 +75,9 @@ def robot_parameters(run: RobotRun) -> dict[str, dict]:
                               "max_episodes": run.episodes, "episode_log": run.episode_log,
                               "wait_for_learner": bool(run.record)},
         "critic": {"option_timeout": 0.0 if drives else run.option_timeout},
-        "meta_controller": {**acting, **({} if drives else {"subgoal_poses_topic": "subgoal_poses"})},
+        # navigation topic: goal_pose as before issue 38 (navigation action: also the critic's navigation_outcome)
+        "meta_controller": {**acting, **({} if drives else {"subgoal_poses_topic": "subgoal_poses",
+                                                            "navigation": "topic"})},
         "sub_controller": {**acting, **({"action_table": run.action_table, "cmd_vel_topic": "cmd_vel"}
                                         if drives else {})},
     }

@@ -80,7 +80,7 @@ def start_graph(tmp_path: Path, algo: str = "hdrqn-v2", episodes: int = 8, respa
     """The graph with the Nav2 adapters on (one environment), or a batch of ``num_envs``."""
     cfg = build_config([], algo=algo, env=ENV, episodes=episodes, seed=3, learning_starts=60, checkpoint_every=2,
                        eval_episodes=4, update_every=5, sub={"batch_size": 2}, meta={"batch_size": 2})
-    nav = {"meta_controller": {"subgoal_table": str(CONFIG / "nav2" / "subgoals.yaml")},
+    nav = {"meta_controller": {"subgoal_table": str(CONFIG / "nav2" / "subgoals.yaml"), "navigation": "topic"},
            "sub_controller": {"action_table": str(CONFIG / "nav2" / "actions.yaml")}} if num_envs == 1 else {}
     params = graph_params(tmp_path, cfg, num_envs=num_envs, extra={
         "environment": {"step_log": str(tmp_path / "env_steps.jsonl")},

@@ -19,6 +19,7 @@ from std_msgs.msg import Float64MultiArray, Int64MultiArray
 
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.nodes.graph_parameters import ENV_PARAMETERS, MAX_MESSAGE_BYTES, NUM_ENVS, env_kwargs
+from hdrqn_ros.nodes.navigation_outcomes import NavigationOutcomes
 from hdrqn_ros.nodes.node_logger import python_logger
 from hdrqn_ros.nodes.parameters import Param, declare_parameters
 from hdrqn_ros.nodes.process import run_node
@@ -29,7 +30,9 @@ from hdrqn_ros.protocol.follower import StepFollower, done
 
 PARAMETERS = {**ENV_PARAMETERS, **NUM_ENVS, **MAX_MESSAGE_BYTES, "option_timeout": Param(
     0.0, "seconds (of step keys) after which an option not yet done ends without reward (0: never)", live=True,
-    low=0.0, high=1e9)}
+    low=0.0, high=1e9),
+    "navigation_outcome": Param(False, "end an option at the step after the navigator's result for it comes on "
+                                       "navigation_outcome (meta_controller navigation: action)")}
 """``option_timeout``: an option not done this many seconds (of step keys, i.e. ROS time on a
 robot) after it started ends there (0: never; a robot whose navigator cannot reach a place).
 A robot setting: the simulator's ``environment`` node sends ``subgoal_images`` only at
@@ -50,6 +53,7 @@ class CriticNode(Node, StepFollower):
         limit = params["max_message_bytes"]
         bounded_subscription(self, Float64MultiArray, wire.ENV_STEP, self.on_env_step, STEP_QOS, limit, self.logger)
         bounded_subscription(self, Int64MultiArray, wire.SUBGOAL, self._on_subgoal, STEP_QOS, limit, self.logger)
+        self.navigation = NavigationOutcomes(self, limit, self.logger) if params["navigation_outcome"] else None
         self.create_timer(1.0, self.check_stall, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.option_subgoal = np.full(self.num_envs, -1)  # each environment's option's subgoal (-1: unknown)
         self.choice_at = np.zeros(self.num_envs, np.int64)  # key at which we announced option_done
@@ -84,6 +88,8 @@ class CriticNode(Node, StepFollower):
                 verdict = [key, result.intrinsic[i], result.reached[i], result.option_done[i], self.option_subgoal[i]]
                 if self.timeout_ns and key - self.choice_at[i] >= self.timeout_ns:  # ran out of time
                     verdict[3] = 1.0
+                if self.navigation is not None and self.navigation.ended(self.choice_at[i]):  # the navigator's result
+                    verdict[3] = 1.0
             if verdict[3] and not done(row):
                 self.choice_at[i], self.option_subgoal[i] = key, -1
             values.append(verdict)
@@ -92,6 +98,8 @@ class CriticNode(Node, StepFollower):
     def reset(self) -> None:
         super().reset()
         self.option_subgoal[:], self.choice_at[:] = -1, 0
+        if self.navigation is not None:
+            self.navigation.clear()
 
 
 def main(argv: list[str] | None = None) -> int:

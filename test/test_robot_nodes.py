@@ -117,7 +117,8 @@ def finished(sup: Supervisor):
 
 def test_sub_drives_the_simulators_episodes_with_one_cmd_vel_per_step(tmp_path, checkpoint, domain):
     probe = Probe()
-    sup, log = start(tmp_path, checkpoint, "sub-drives")
+    # one command per action (drive: commands); the default, motion primitives: test_motion_primitives_nodes.py
+    sup, log = start(tmp_path, checkpoint, "sub-drives", sub_controller={"drive": "commands"})
     try:
         def acting() -> bool:
             sub = probe.diagnostics.get("hdrqn_ros: /sub_controller")

@@ -9,6 +9,8 @@ from odometry (``odom_topic``, in its own frame). Velocity commands stream on ``
 when the primitive completes, is blocked or times out after ``primitive_timeout_s``: keep
 that under the robot environment's ``step_period`` and the next step's observation is
 taken after the primitive ended. Each outcome is logged and counted on ``/diagnostics``.
+While there is no pose (no tf, no odometry: e.g. the simulator's graph) an action goes out
+as its one table command, with a throttled warning and a WARN on ``/diagnostics``.
 """
 from __future__ import annotations
 
@@ -145,8 +147,9 @@ class PrimitiveDriver(VelocityDriver):
             return super().command(None, stamp)
         pose = self.pose()
         if pose is None:
-            self.no_pose.warn(f"action {action} not driven: {self._where()}: {self.pose_problem}")
-            return super().command(None, stamp)
+            self.no_pose.warn(f"action {action} driven as one command, not a primitive: {self._where()}: "
+                              f"{self.pose_problem}")
+            return super().command(action, stamp)
         params = self.node.params
         if self.lattice is None:
             self.lattice = Lattice(pose, params["cell_size_m"], pose[2] if self.table.heading_up else 0.0)
@@ -212,7 +215,8 @@ class PrimitiveDriver(VelocityDriver):
     def problems(self) -> list[str]:
         found = super().problems()
         if self.pose_problem:
-            found.append(f"motion primitives have no pose ({self._where()}): {self.pose_problem}")
+            found.append(f"motion primitives have no pose ({self._where()}): {self.pose_problem}; actions go out "
+                         f"as one command each")
         if self.last_outcome == TIMED_OUT:
             found.append(f"the last motion primitive timed out (the robot is slower than the limits, or "
                          f"primitive_timeout_s too short): {self.last_report}")

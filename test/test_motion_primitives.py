@@ -174,3 +174,31 @@ def test_bad_commands_and_limits_are_named():
         Limits(min_linear=1.0, max_linear=0.5)
     stay = Primitive(Motion("stay"), (0.0, 0.0, 0.0), 0.0, CELL, False, True, Limits())
     assert stay.control((0.0, 0.0, 0.0), 0.0) is None and stay.outcome == COMPLETED
+
+
+def test_action_tables_say_what_each_action_does(tmp_path):
+    """The shipped tables: the simulator's moves (holonomic, north-up) and forward/back/turns
+    (differential drive, heading-up); ``observation`` says it outright; a command that both
+    moves and turns is refused naming the table and the action."""
+    pytest.importorskip("geometry_msgs.msg", reason="the action table builds ROS messages")
+    from hdrqn_ros.nodes.nav import ActionTable, NavConfigError
+    from hdrqn_ros.robot_graph import HOLONOMIC_ACTIONS
+
+    holonomic = ActionTable.load(HOLONOMIC_ACTIONS, 4)
+    assert holonomic.holonomic and not holonomic.heading_up
+    assert [holonomic.motion(a) for a in range(4)] == [Motion("move", d) for d in
+                                                       ((0.0, 1.0), (0.0, -1.0), (-1.0, 0.0), (1.0, 0.0))]
+    diff = ActionTable.load(HOLONOMIC_ACTIONS.with_name("actions.yaml"), 4)
+    assert diff.heading_up and not diff.holonomic
+    assert [diff.motion(a) for a in range(4)] == [Motion("move", (1.0, 0.0)), Motion("move", (-1.0, 0.0)),
+                                                  Motion("turn", sign=1), Motion("turn", sign=-1)]
+    assert diff.velocity_msg(0.1, 0.0, -0.5).angular.z == -0.5
+    path = tmp_path / "actions.yaml"
+    path.write_text("observation: heading_up\nactions:\n  - {linear_x: 0.1}\n  - {linear_x: 0.1, angular_z: 0.5}\n")
+    table = ActionTable.load(path, 2)
+    assert table.heading_up and table.motion(0) == Motion("move", (1.0, 0.0))
+    with pytest.raises(NavConfigError, match=r"actions.yaml: action 1: a motion primitive moves or turns, not both"):
+        table.motion(1)
+    path.write_text("observation: sideways\nactions:\n  - {linear_x: 0.1}\n")
+    with pytest.raises(NavConfigError, match=r"observation must be one of \['north_up', 'heading_up'\], got 'sideways'"):
+        ActionTable.load(path, 1)

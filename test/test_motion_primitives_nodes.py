@@ -13,6 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 pytest.importorskip("rclpy", reason="ROS 2 Jazzy (rclpy) is not installed here")
@@ -20,7 +21,7 @@ pytest.importorskip("onnxruntime", reason="the shipped policy needs onnxruntime"
 
 from hdrqn_ros.agents.specs import ALGO_SPECS, stack_subgoal  # noqa: E402
 from hdrqn_ros.deploy.onnx_policy import OnnxPolicy  # noqa: E402
-from hdrqn_ros.robot_graph import RobotRun, robot_processes, write_params  # noqa: E402
+from hdrqn_ros.robot_graph import HOLONOMIC_ACTIONS, RobotRun, robot_processes, write_params  # noqa: E402
 from hdrqn_ros.supervisor import ProcessSpec, Supervisor  # noqa: E402
 from hdrqn_ros.training.learner import play  # noqa: E402
 
@@ -31,6 +32,8 @@ POLICY = Path(__file__).resolve().parents[1] / "policies" / "hdrqn-v2_gridworld-
 """The shipped policy: it visits the places, so its episodes turn, stop and vary (a random
 checkpoint pushes one wall for 50 steps, which any drive reproduces)."""
 SEED, EPISODES = 2, 3
+HOLONOMIC, DIFF = HOLONOMIC_ACTIONS, HOLONOMIC_ACTIONS.with_name("actions.yaml")
+"""The simulator's moves (north-up, holonomic); forward, back, turn left, turn right (heading-up)."""
 
 NAV2_ROBOT = {"odom_frame": "odom", "map_to_odom": "[0.8, 0.4, 0.0]", "start_yaw": 0.3, "cmd_vel_timeout": 1.0,
               "real_time_factor": 10.0}
@@ -65,11 +68,12 @@ def simulated(episodes: int) -> tuple[list[tuple[int, bool]], list[int]]:
     return [(e.steps, bool(e.success)) for e in stats], actions[:sum(e.steps for e in stats)]
 
 
-def start(tmp_path: Path, **overrides) -> tuple[Supervisor, Path]:
+def start(tmp_path: Path, episodes: int = EPISODES, action_table: Path = HOLONOMIC,
+          **overrides) -> tuple[Supervisor, Path]:
     """The robot graph in sub-drives with the shipped policy (``overrides``: parameters by node)."""
     log = tmp_path / "episodes.jsonl"
     run = RobotRun(algo="hdrqn-v2", env="hdrqn/GridWorld-2Goals-v0", view="5", policy=str(POLICY), mode="sub-drives",
-                   episodes=EPISODES, seed=SEED, episode_log=str(log))
+                   episodes=episodes, seed=SEED, episode_log=str(log), action_table=str(action_table))
     params = write_params(run, tmp_path / "params.yaml")
     specs = [ProcessSpec(spec.name, spec.argv + [a for name, value in overrides.get(spec.name, {}).items()
                                                  for a in ("-p", f"{name}:={value}")], required=spec.required,
@@ -85,10 +89,27 @@ def _values(probe: Probe, name: str) -> dict[str, str]:
     return {} if status is None else {kv.key: kv.value for kv in status.values}
 
 
-@pytest.mark.parametrize("drive", ["primitives", "commands"])
-def test_sub_drives_equal_the_simulator_with_a_1s_deadman_a_start_yaw_and_map_to_odom(tmp_path, drive):
+def _outcomes(sup: Supervisor) -> list[str]:
+    """Each primitive's outcome as the sub-controller logged it."""
+    return [line.split("motion primitive: ", 1)[1] for line in sup.log_path("sub_controller").read_text().splitlines()
+            if "motion primitive: " in line]
+
+
+def _metres(outcome: str) -> float:
+    return float(outcome.split(": ")[1].split(" m ")[0])
+
+
+def _degrees(outcome: str) -> float:
+    return float(outcome.split(" m and ")[1].split(" deg ")[0])
+
+
+@pytest.mark.parametrize("drive, pose_source", [("primitives", "tf"), ("primitives", "odometry"),
+                                                ("commands", "tf")])
+def test_sub_drives_equal_the_simulator_with_a_1s_deadman_a_start_yaw_and_map_to_odom(tmp_path, drive,
+                                                                                      pose_source):
     probe = Probe()
-    sup, log = start(tmp_path, loopback_robot=NAV2_ROBOT, sub_controller={"drive": drive, "pose_source": "tf"})
+    sup, log = start(tmp_path, loopback_robot=NAV2_ROBOT,
+                     sub_controller={"drive": drive, "pose_source": pose_source})
     try:
         probe.until(finished(sup), 240, f"{EPISODES} robot episodes", sup)
         probe.until(lambda: probe.cmd_vel and probe.cmd_vel[-1] == (0.0, 0.0, 0.0), 30, "the last zero command", sup)
@@ -99,22 +120,53 @@ def test_sub_drives_equal_the_simulator_with_a_1s_deadman_a_start_yaw_and_map_to
         probe.close()
     assert codes["robot_environment"] == 0, codes
     robot = [(r["steps"], bool(r["success"])) for r in read_jsonl(log)]
-    actions = [int(row["action"]) for row in probe.steps if row["t"] > 0]
     episodes, sim_actions = simulated(EPISODES)
     assert any(success for _, success in episodes) and len(set(sim_actions)) == 4, "the comparison means something"
+    heard: dict[int, dict[int, int]] = {}  # episode -> t -> the action before step t, as the probe heard them
+    for row in probe.steps:
+        if row["t"] > 0:
+            heard.setdefault(int(row["episode"]), {})[int(row["t"])] = int(row["action"])
+    bounds = np.cumsum([0] + [n for n, _ in episodes])
+    complete = [e for e, (n, _) in enumerate(episodes) if sorted(heard.get(e, {})) == list(range(1, n + 1))]
     moves = [c for c in probe.cmd_vel if c != (0.0, 0.0, 0.0)]
     steps = sum(r[0] for r in robot)
     if drive == "commands":
         assert sub["drive"].startswith("one command per action")
-        assert (robot, actions) != (episodes, sim_actions), "the control: one command per step under a 1 s " \
-            "deadman, turned by the start yaw, must not reproduce the simulator"
+        assert robot != episodes, "the control: one command per step under a 1 s deadman, turned by the start " \
+            "yaw, must not reproduce the simulator"
         return
     assert robot == episodes, (robot, episodes, sub)
-    assert actions == sim_actions
+    assert len(complete) >= EPISODES - 1, f"the probe heard every step of episodes {complete} only"
+    for e in complete:  # a probe that joins late misses the first steps
+        assert [heard[e][t] for t in range(1, episodes[e][0] + 1)] == sim_actions[bounds[e]:bounds[e + 1]], e
     assert len(moves) > 5 * steps, "commands stream through each primitive (a 1 s deadman would cut one)"
-    assert sub["drive"] == "primitives from tf odom <- base_link at 20 Hz", sub
+    assert sub["drive"] == ("primitives from tf odom <- base_link at 20 Hz" if pose_source == "tf" else
+                            "primitives from odometry on /odom at 20 Hz"), sub
     assert "completed" in sub["primitives"] and sub["last_primitive"].startswith("move of one cell"), sub
-    ended = [line.split("motion primitive: ", 1)[1] for line in
-             sup.log_path("sub_controller").read_text().splitlines() if "motion primitive: " in line]
+    ended = _outcomes(sup)
     assert len(ended) == steps and all(" completed: " in e or " blocked: " in e for e in ended), ended
-    assert all(float(e.split(": ")[1].split(" m ")[0]) <= 0.011 for e in ended if " completed: " in e), ended
+    assert all(_metres(e) <= 0.011 for e in ended if " completed: " in e), ended
+
+
+def test_differential_drive_turns_exactly_90_degrees_and_moves_a_cell(tmp_path):
+    """The heading-up table on a differential-drive robot (start yaw 0.3 rad, 1 s deadman):
+    every turn ends within the angle tolerance (1.15 degrees) of its 90 degrees, every move at
+    its cell or against a wall; none times out."""
+    probe = Probe()
+    sup, log = start(tmp_path, episodes=1, action_table=DIFF, loopback_robot={**NAV2_ROBOT, "drive": "diff"},
+                     robot_environment={"heading_up": True})
+    try:
+        probe.until(finished(sup), 240, "one robot episode", sup)
+        probe.until(lambda: probe.cmd_vel and probe.cmd_vel[-1] == (0.0, 0.0, 0.0), 30, "the last zero command", sup)
+    finally:
+        codes = sup.stop()
+        probe.close()
+    assert codes["robot_environment"] == 0, codes
+    ended = _outcomes(sup)
+    turns, moves = [e for e in ended if e.startswith("turn")], [e for e in ended if e.startswith("move")]
+    assert len(ended) == read_jsonl(log)[0]["steps"] and turns and moves, ended
+    assert all(" completed: " in e and _degrees(e) <= 1.2 for e in turns), turns
+    # within the tolerance along the way; sideways, a differential drive keeps the up to one
+    # tolerance the move before stopped short by (then turned across): 0.025 m in all
+    assert all((" completed: " in e and _metres(e) <= 0.025) or " blocked: " in e for e in moves), moves
+    assert all(cmd[1] == 0.0 for cmd in probe.cmd_vel), "a differential drive gets no sideways command"

@@ -81,7 +81,8 @@ def start_graph(tmp_path: Path, algo: str = "hdrqn-v2", episodes: int = 8, respa
     cfg = build_config([], algo=algo, env=ENV, episodes=episodes, seed=3, learning_starts=60, checkpoint_every=2,
                        eval_episodes=4, update_every=5, sub={"batch_size": 2}, meta={"batch_size": 2})
     nav = {"meta_controller": {"subgoal_table": str(CONFIG / "nav2" / "subgoals.yaml"), "navigation": "topic"},
-           "sub_controller": {"action_table": str(CONFIG / "nav2" / "actions.yaml")}} if num_envs == 1 else {}
+           "sub_controller": {"action_table": str(CONFIG / "nav2" / "actions.yaml"),
+                              "drive": "commands"}} if num_envs == 1 else {}  # no robot: no pose for primitives
     params = graph_params(tmp_path, cfg, num_envs=num_envs, extra={
         "environment": {"step_log": str(tmp_path / "env_steps.jsonl")},
         "learner": {"transition_log": str(tmp_path / "transitions.jsonl"), "weights_every": 5, **(learner or {})},

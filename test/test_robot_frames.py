@@ -73,6 +73,7 @@ class FakeRobot:
         self.pose = START  # map frame
         self.steps: list[dict] = []
         self.observations: dict[int, np.ndarray] = {}  # key -> (44, 44, 3)
+        self.observation_frames: set[str] = set()
         self.diagnostics: list[tuple[int, str]] = []  # the robot environment's (level, message)
         self.tf = node.create_publisher("tf2_msgs/msg/TFMessage", "/tf", keep_last(100))
         self.tf_static = node.create_publisher("tf2_msgs/msg/TFMessage", "/tf_static",
@@ -188,6 +189,7 @@ class FakeRobot:
     def _on_observation(self, msg) -> None:
         key, pixels = wire.read_images(msg, 44, 44, 1)
         self.observations[key] = pixels[0]
+        self.observation_frames.add(msg.header.frame_id)
 
     def _on_diagnostics(self, msg) -> None:
         self.diagnostics += [(int.from_bytes(s.level, "little"), s.message) for s in msg.status
@@ -262,6 +264,7 @@ def test_pose_from_tf_costmap_in_odom_places_in_map(tmp_path, domain):
     keys = [int(s["key"]) for s in robot.steps[:3]]
     np.testing.assert_array_equal(robot.observations[keys[0]], expected_observation(START, PLACES))
     np.testing.assert_array_equal(robot.observations[keys[1]], expected_observation(STOPS[0], (None, PLACES[1])))
+    assert robot.observation_frames == {"map"}  # the frame whose axes the view keeps
 
 
 def test_a_frame_missing_from_the_tree_is_a_warning_naming_it(tmp_path, domain):

@@ -495,7 +495,7 @@ class RobotEnvironmentNode(ManagedNode):
 
     def _publish(self) -> None:
         """The current step: ``env_step``, ``observation``, ``subgoal_images``, ``pose`` and the markers,
-        each image drawn in its costmap's frame."""
+        each image drawn from its costmap in the costmap's frame."""
         key, params, inputs, scene = self.key, self.params, self.inputs, self.scene
         grid, images_grid = inputs.costmap.value, inputs.places_costmap
 
@@ -515,8 +515,9 @@ class RobotEnvironmentNode(ManagedNode):
                                                             agent_xy=robot_xy, **style) for xy in self.task.goal_xy])
         self.pub_step.publish(wire.make_record(ROS_MESSAGES, wire.FLOATS, wire.STEP_FIELDS,
                                                [self.record[f] for f in wire.STEP_FIELDS]))
-        self.pub_obs.publish(wire.make_image(ROS_MESSAGES, key, obs, grid.frame_id))
-        self.pub_images.publish(wire.make_image(ROS_MESSAGES, key, images, images_grid.frame_id))
+        # the images' frame: the one whose axes a north-up view keeps (a motion primitive's moves are in it)
+        self.pub_obs.publish(wire.make_image(ROS_MESSAGES, key, obs, scene.pose.frame))
+        self.pub_images.publish(wire.make_image(ROS_MESSAGES, key, images, scene.pose.frame))
         self.pub_pose.publish(wire.make_pose(ROS_MESSAGES, key, scene.pose.frame, scene.pose.x, scene.pose.y))
         self._publish_markers()
 

@@ -202,3 +202,15 @@ def test_action_tables_say_what_each_action_does(tmp_path):
     path.write_text("observation: sideways\nactions:\n  - {linear_x: 0.1}\n")
     with pytest.raises(NavConfigError, match=r"observation must be one of \['north_up', 'heading_up'\], got 'sideways'"):
         ActionTable.load(path, 1)
+
+
+def test_a_stalled_controller_is_not_a_blocked_robot():
+    """The first command went nowhere and the caller did not run for 0.6 s (a loaded
+    machine): the robot stood still, but no progress was asked for meanwhile, so that is no
+    wall (without the rule it would end blocked), and the move goes on to its cell."""
+    primitive, robot, limits = start(HOLONOMIC, 3, 0.0, holonomic=True, heading_up=False)
+    assert primitive.control(robot.pose, 0.0) is not None
+    for _ in range(round(0.6 / DT)):
+        robot.advance(DT)
+    run(primitive, robot)
+    assert primitive.outcome == COMPLETED and robot.t < limits.timeout_s, primitive.report()

@@ -14,7 +14,6 @@ as its one table command, with a throttled warning and a WARN on ``/diagnostics`
 """
 from __future__ import annotations
 
-import math
 from collections import Counter
 
 from nav_msgs.msg import Odometry

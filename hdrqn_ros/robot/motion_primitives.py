@@ -16,7 +16,8 @@ the measured pose, so small errors do not add up over an episode.
 A :class:`Primitive` is driven by calling :meth:`Primitive.control` with each new pose: it
 returns the body-frame command ``(vx, vy, wz)`` (m/s, m/s, rad/s) of a proportional
 controller within the :class:`Limits`, and ``None`` once it ended: ``completed`` (within the
-position and angle tolerances), ``blocked`` (no progress for ``blocked_after_s``) or
+position and angle tolerances), ``blocked`` (no progress for ``blocked_after_s`` while
+driven: a gap of over half that between two calls restarts the wait) or
 ``timed_out`` (``timeout_s`` after its start). A differential-drive robot (not
 ``holonomic``) turns to face a move's direction (or its opposite, backing up) first.
 """
@@ -141,7 +142,7 @@ class Primitive:
         self.error_m = self.error_rad = math.inf  # the last pose's distance and yaw from the target
         self.elapsed_s = 0.0
         self._best = math.inf  # the least remaining error so far (m, or rad for a turn)
-        self._best_at = t0
+        self._best_at = self._last_t = t0  # when progress was last made; the last call
         self._drive_yaw = start[2]  # a differential-drive move's heading: the direction, or its opposite
         if motion.kind == "move" and not holonomic:
             direction = math.atan2(self.target[1] - start[1], self.target[0] - start[0])
@@ -173,8 +174,11 @@ class Primitive:
             return self._end(COMPLETED)
         if remaining < self._best - (lim.angle_tolerance if self.motion.kind == "turn" else lim.position_tolerance) / 2:
             self._best, self._best_at = remaining, t
+        elif t - self._last_t > lim.blocked_after_s / 2:
+            self._best_at = t  # not driven for a while (this caller stalled): no progress was asked for
         elif t - self._best_at >= lim.blocked_after_s:
             return self._end(BLOCKED)
+        self._last_t = t
         if t - self.t0 >= lim.timeout_s:
             return self._end(TIMED_OUT)
         if self.motion.kind == "turn":

@@ -274,7 +274,8 @@ def test_a_frame_missing_from_the_tree_is_a_warning_naming_it(tmp_path, domain):
     sup = start(tmp_path)
     try:
         robot.publish_places()
-        robot.run(lambda: robot.warned("map <- base_link", "odometry"), 60, "a WARN naming the frames", sup,
+        robot.run(lambda: robot.warned("map <- base_link", "odometry") and "'base_link'" in robot.log(sup), 60,
+                  "a WARN naming the frames, and the log line", sup,
                   every=lambda: robot.publish_tf_and_costmap(with_base=False))
     finally:
         sup.stop()

@@ -70,9 +70,6 @@ class RobotPose:
     stamp_ns: int
     latest: bool = False
 
-    def transform(self) -> Transform:
-        return Transform.from_xy_yaw(self.x, self.y, self.yaw)
-
 
 Lookup = Callable[[str, str, "int | None"], Transform]
 """``lookup(target, source, stamp_ns or None)``: the transform mapping points in ``source``

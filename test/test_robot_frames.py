@@ -219,11 +219,13 @@ class FakeRobot:
 
 
 def start(tmp_path: Path, *params: str) -> Supervisor:
-    argv = [sys.executable, "-m", "hdrqn_ros.nodes.robot_environment", "--ros-args",
-            "-p", "subgoal_poses_topic:=/places", "-p", "step_period:=0.5", "-p", "max_steps:=6",
-            "-p", "global_frame:=map", "-p", "robot_base_frame:=base_link"]
-    for param in params:
-        argv += ["-p", param]
+    """The robot environment with ``params`` (``name:=value``) over this test's defaults."""
+    values = {"subgoal_poses_topic": "/places", "step_period": "0.5", "max_steps": "6", "global_frame": "map",
+              "robot_base_frame": "base_link"}
+    values.update(param.split(":=", 1) for param in params)
+    argv = [sys.executable, "-m", "hdrqn_ros.nodes.robot_environment", "--ros-args"]
+    for name, value in values.items():
+        argv += ["-p", f"{name}:={value}"]
     sup = Supervisor([ProcessSpec("robot_environment", argv)], log_dir=tmp_path, stop_timeout_s=30)
     sup.start()
     return sup
@@ -248,7 +250,7 @@ def test_pose_from_tf_costmap_in_odom_places_in_map(tmp_path, domain):
     +y); a robot that stops 0.2 m short of each place visits it (``goal_tolerance`` 0.25 m by
     default). Before: every costmap was refused (frame ``odom``, places in ``map``)."""
     robot = FakeRobot()
-    sup = start(tmp_path)
+    sup = start(tmp_path, "step_period:=1.0")  # the robot moves right after a step, long before the next
     try:
         robot.publish_static()
         robot.publish_places()

@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hdrqn_ros.critic import GRID_CRITIC, MONTEZUMA_CRITIC, InternalCritic, sub_controller_terminal
+from hdrqn_ros.envs.critic import GRID_CRITIC, MONTEZUMA_CRITIC, InternalCritic, sub_controller_terminal
 from hdrqn_ros.envs.domain import StepBatch
 from hdrqn_ros.envs.gridworld import GridWorldBatch, GridWorldEnv
 

@@ -20,7 +20,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "hdrqn_ros"
 
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("base", ("hdrqn_ros.throttle", "hdrqn_ros.yaml_files", "hdrqn_ros.hashing", "hdrqn_ros.extras", "hdrqn_ros.dds")),
-    ("envs and critic", ("hdrqn_ros.envs", "hdrqn_ros.critic", "hdrqn_ros.__init__")),
+    ("envs and critic", ("hdrqn_ros.envs", "hdrqn_ros.__init__")),
     ("robot task and kinematics", ("hdrqn_ros.robot",)),
     ("algorithm table", ("hdrqn_ros.agents.specs",)),
     ("torch-free policy", ("hdrqn_ros.deploy",)),

@@ -11,7 +11,7 @@ from gymnasium.utils.env_checker import check_env
 
 import hdrqn_ros  # noqa: F401  (registers the ids)
 from hdrqn_ros.config import build_config
-from hdrqn_ros.critic import MONTEZUMA_CRITIC
+from hdrqn_ros.envs.critic import MONTEZUMA_CRITIC
 from hdrqn_ros.envs import montezuma as mz
 from hdrqn_ros.envs.domain import NO_SUBGOAL, OBS_SHAPE
 from hdrqn_ros.envs.registration import make_batch

@@ -62,7 +62,7 @@ class Controller:
     is not stored: the target reads ``cfg.gamma`` at every update, raised to the power
     ``option_steps`` with ``smdp_discount`` (eq. 3.5; the meta-controller). A
     sub-controller (or flat) step stores the intrinsic (flat: classical) reward and
-    ``terminal`` = :func:`~hdrqn_ros.critic.sub_controller_terminal`; a meta step is
+    ``terminal`` = :func:`~hdrqn_ros.envs.critic.sub_controller_terminal`; a meta step is
     :func:`meta_transition`.
     """
 

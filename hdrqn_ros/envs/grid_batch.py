@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hdrqn_ros.critic import GRID_CRITIC, InternalCritic
+from hdrqn_ros.envs.critic import GRID_CRITIC, InternalCritic
 from hdrqn_ros.envs.domain import NO_SUBGOAL, StepBatch, check_actions
 from hdrqn_ros.envs.grid_layout import (ACTIONS, AGENT, CANVAS, CANVAS_CELLS, DELTA_FLAT, FIRE, FREE, GOAL0,
                                         GOAL_NAMES, LAYOUTS, MAP_SIZE, NUM_OBSTACLES, OUTSIDE, PAD, PALETTE, WALL,

@@ -12,7 +12,7 @@ import secrets
 import gymnasium as gym
 import numpy as np
 
-from hdrqn_ros.critic import MONTEZUMA_CRITIC, InternalCritic
+from hdrqn_ros.envs.critic import MONTEZUMA_CRITIC, InternalCritic
 from hdrqn_ros.envs.domain import NO_SUBGOAL, OBS_SHAPE, OBS_SIZE, StepBatch, check_actions
 
 # --- ALE facts (verified in docs/montezuma.md and test/test_montezuma.py) -------------

@@ -1,7 +1,7 @@
 """``critic`` node: the internal critic (thesis 3.6) between environment and controllers.
 
 For each ``env_step`` (key K, the step taken on observation ``prev_key``) it evaluates the
-domain's :class:`~hdrqn_ros.critic.InternalCritic` with the current option's subgoal and
+domain's :class:`~hdrqn_ros.envs.critic.InternalCritic` with the current option's subgoal and
 publishes ``critic`` (intrinsic reward, subgoal reached, option done). At an episode's
 first step it publishes ``option_done = 1`` with no reward. The meta-controller publishes a
 ``subgoal`` only when an option starts, so after announcing ``option_done`` the critic

@@ -20,7 +20,7 @@ from hdrqn_ros.agents.specs import ALGO_SPECS
 from hdrqn_ros.agents.networks import lstm_state_size
 from hdrqn_ros.agents.policy import StepRecord
 from hdrqn_ros.config import TrainConfig, batch_class
-from hdrqn_ros.critic import sub_controller_terminal
+from hdrqn_ros.envs.critic import sub_controller_terminal
 from hdrqn_ros.envs.domain import OBS_SIZE
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.protocol.follower import LOST_AFTER_S, Decoder, StepFollower, done

@@ -3,7 +3,7 @@
 Sub-controller episode: frames o_0..o_T (T+1 observations, each stored once); fields
 ``action, reward (intrinsic, or classical for flat agents), terminal``; one
 segment per option with its subgoal image (windows never cross an option boundary).
-``terminal`` is the record's ``sub_terminal`` (:func:`~hdrqn_ros.critic.sub_controller_terminal`,
+``terminal`` is the record's ``sub_terminal`` (:func:`~hdrqn_ros.envs.critic.sub_controller_terminal`,
 applied alike by the in-process rollout and the graph's assembler).
 Meta-controller episode: one step per option; frames are the meta inputs at each decision
 plus the input after the last option; each step's reward, ``option_steps`` (the option's

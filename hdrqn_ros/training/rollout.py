@@ -13,7 +13,7 @@ import numpy as np
 
 from hdrqn_ros.agents.algorithms import Agent
 from hdrqn_ros.agents.policy import HierarchicalPolicy, StepRecord
-from hdrqn_ros.critic import sub_controller_terminal
+from hdrqn_ros.envs.critic import sub_controller_terminal
 
 
 class Rollout:

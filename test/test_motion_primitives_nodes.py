@@ -15,6 +15,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import yaml
 
 pytest.importorskip("rclpy", reason="ROS 2 Jazzy (rclpy) is not installed here")
 pytest.importorskip("onnxruntime", reason="the shipped policy needs onnxruntime")
@@ -22,7 +23,7 @@ pytest.importorskip("onnxruntime", reason="the shipped policy needs onnxruntime"
 from hdrqn_ros.agents.specs import ALGO_SPECS, stack_subgoal  # noqa: E402
 from hdrqn_ros.deploy.onnx_policy import OnnxPolicy  # noqa: E402
 from hdrqn_ros.robot_graph import HOLONOMIC_ACTIONS, RobotRun, robot_processes, write_params  # noqa: E402
-from hdrqn_ros.supervisor import ProcessSpec, Supervisor  # noqa: E402
+from hdrqn_ros.supervisor import Supervisor  # noqa: E402
 from hdrqn_ros.training.learner import play  # noqa: E402
 
 from test_graph import domain, read_jsonl  # noqa: E402, F401  (domain: a fixture)
@@ -35,10 +36,14 @@ SEED, EPISODES = 2, 3
 HOLONOMIC, DIFF = HOLONOMIC_ACTIONS, HOLONOMIC_ACTIONS.with_name("actions.yaml")
 """The simulator's moves (north-up, holonomic); forward, back, turn left, turn right (heading-up)."""
 
-NAV2_ROBOT = {"odom_frame": "odom", "map_to_odom": "[0.8, 0.4, 0.0]", "start_yaw": 0.3, "cmd_vel_timeout": 1.0,
-              "real_time_factor": 10.0}
+NAV2_ROBOT = {"odom_frame": "odom", "map_to_odom": [0.8, 0.4, 0.0], "start_yaw": 0.3, "cmd_vel_timeout": 1.0,
+              "lockstep": "control", "real_time_factor": 20.0}
 """The loopback robot's Nav2 settings. ``map -> odom`` turns nothing here: the observation is
-drawn in the costmap's frame (odom), and a turned one would differ from the simulator's view."""
+drawn in the costmap's frame (odom), and a turned one would differ from the simulator's view.
+``lockstep: control``: while the robot drives, each tick of its clock waits for the next
+command, so the control loop, closed across processes on the simulated clock, does not
+depend on how loaded the machine is (at 5x real time without it, a loaded machine's stall
+of the sub-controller of 0.2 s wall, 1 s of the robot's time, lost a cell now and then)."""
 
 
 class _Role:
@@ -70,16 +75,17 @@ def simulated(episodes: int) -> tuple[list[tuple[int, bool]], list[int]]:
 
 def start(tmp_path: Path, episodes: int = EPISODES, action_table: Path = HOLONOMIC,
           **overrides) -> tuple[Supervisor, Path]:
-    """The robot graph in sub-drives with the shipped policy (``overrides``: parameters by node)."""
+    """The robot graph in sub-drives with the shipped policy (``overrides``: parameters by
+    node, written into its parameters file, where they win over the graph's own)."""
     log = tmp_path / "episodes.jsonl"
     run = RobotRun(algo="hdrqn-v2", env="hdrqn/GridWorld-2Goals-v0", view="5", policy=str(POLICY), mode="sub-drives",
                    episodes=episodes, seed=SEED, episode_log=str(log), action_table=str(action_table))
     params = write_params(run, tmp_path / "params.yaml")
-    specs = [ProcessSpec(spec.name, spec.argv + [a for name, value in overrides.get(spec.name, {}).items()
-                                                 for a in ("-p", f"{name}:={value}")], required=spec.required,
-                         stack_dump_signal=spec.stack_dump_signal)
-             for spec in robot_processes(run, params, hierarchical=True)]
-    sup = Supervisor(specs, log_dir=tmp_path / "logs", stop_timeout_s=30)
+    doc = yaml.safe_load(params.read_text())
+    for node, values in overrides.items():
+        doc.setdefault(f"/**/{node}", {"ros__parameters": {}})["ros__parameters"].update(values)
+    params.write_text(yaml.safe_dump(doc, sort_keys=False))
+    sup = Supervisor(robot_processes(run, params, hierarchical=True), log_dir=tmp_path / "logs", stop_timeout_s=30)
     sup.start()
     return sup, log
 
@@ -105,10 +111,11 @@ def _degrees(outcome: str) -> float:
 
 @pytest.mark.parametrize("drive, pose_source", [("primitives", "tf"), ("primitives", "odometry"),
                                                 ("commands", "tf")])
-def test_sub_drives_equal_the_simulator_with_a_1s_deadman_a_start_yaw_and_map_to_odom(tmp_path, drive,
+def test_sub_drives_equal_the_simulator_with_a_1s_deadman_a_start_yaw_and_map_to_odom(tmp_path, domain, drive,
                                                                                       pose_source):
     probe = Probe()
-    sup, log = start(tmp_path, loopback_robot=NAV2_ROBOT,
+    lockstep = "control" if drive == "primitives" else "cmd_vel"  # one command per step: nothing per tick
+    sup, log = start(tmp_path, loopback_robot={**NAV2_ROBOT, "lockstep": lockstep},
                      sub_controller={"drive": drive, "pose_source": pose_source})
     try:
         probe.until(finished(sup), 240, f"{EPISODES} robot episodes", sup)
@@ -148,10 +155,10 @@ def test_sub_drives_equal_the_simulator_with_a_1s_deadman_a_start_yaw_and_map_to
     assert all(_metres(e) <= 0.011 for e in ended if " completed: " in e), ended
 
 
-def test_differential_drive_turns_exactly_90_degrees_and_moves_a_cell(tmp_path):
+def test_differential_drive_turns_exactly_90_degrees_and_moves_a_cell(tmp_path, domain):
     """The heading-up table on a differential-drive robot (start yaw 0.3 rad, 1 s deadman):
     every turn ends within the angle tolerance (1.15 degrees) of its 90 degrees, every move at
-    its cell or against a wall; none times out."""
+    its cell (0.01 m along the way) or against a wall; none times out."""
     probe = Probe()
     sup, log = start(tmp_path, episodes=1, action_table=DIFF, loopback_robot={**NAV2_ROBOT, "drive": "diff"},
                      robot_environment={"heading_up": True})
@@ -166,7 +173,7 @@ def test_differential_drive_turns_exactly_90_degrees_and_moves_a_cell(tmp_path):
     turns, moves = [e for e in ended if e.startswith("turn")], [e for e in ended if e.startswith("move")]
     assert len(ended) == read_jsonl(log)[0]["steps"] and turns and moves, ended
     assert all(" completed: " in e and _degrees(e) <= 1.2 for e in turns), turns
-    # within the tolerance along the way; sideways, a differential drive keeps the up to one
-    # tolerance the move before stopped short by (then turned across): 0.025 m in all
-    assert all((" completed: " in e and _metres(e) <= 0.025) or " blocked: " in e for e in moves), moves
+    # within the tolerance along the way; sideways a differential drive cannot close what the
+    # moves before left (short by up to a tolerance, then turned across; stopped by a wall): 0.05 m in all
+    assert all((" completed: " in e and _metres(e) <= 0.05) or " blocked: " in e for e in moves), moves
     assert all(cmd[1] == 0.0 for cmd in probe.cmd_vel), "a differential drive gets no sideways command"

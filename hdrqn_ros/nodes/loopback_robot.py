@@ -32,7 +32,9 @@ can); the node keeps it itself and paces it on the wall clock, with or without
 ``use_sim_time``. With ``lockstep`` (``action`` or ``cmd_vel``) the clock stands at 0 until
 the robot-side environment's first step, stops at each agent step until the agent answered
 it, and at the next step's time until the robot-side environment published it (as PX4's
-lockstep simulation does), so a loaded machine never changes what happens; a hold longer
+lockstep simulation does), so a loaded machine never changes what happens; with ``control``
+also, while the robot drives on a velocity command, at each tick until the next command
+came (a controller closing its loop on the simulated clock: motion primitives); a hold longer
 than ``lockstep_timeout`` wall seconds is logged and released. It is not a robot
 simulator: no dynamics, no sensors, no localisation error.
 """
@@ -65,9 +67,10 @@ from hdrqn_ros.protocol.follower import done
 from hdrqn_ros.robot.loopback_world import AmclUpdates, Costmap, LoopbackWorld
 from hdrqn_ros.throttle import Throttle
 
-LOCKSTEP_MODES = ("off", "action", "cmd_vel")
+LOCKSTEP_MODES = ("off", "action", "cmd_vel", "control")
 """``off``; hold the clock until the sub-controller's ``action`` for the step; or until a
-velocity command after the step (``cmd_vel``)."""
+velocity command after the step (``cmd_vel``); and, while the robot drives, each tick until a
+velocity command after the previous one (``control``; issue 38: motion primitives)."""
 DRIVES = ("holonomic", "diff")
 TF_QOS = keep_last(100)
 """``/tf`` as tf2_ros's broadcaster offers it: reliable, volatile, keep-last 100."""
@@ -124,7 +127,8 @@ PARAMETERS = {
     "cost_scaling_factor": Param(3.0, "the inflation costs' decay (1/m; Nav2's default 3.0)", low=0.0, high=100.0),
     "global_costmap_topic": Param("global_costmap/costmap", "the whole map out, once per layout"),
     "subgoal_poses_topic": Param("subgoal_poses", "each episode's places out (latched PoseArray)"),
-    "lockstep": Param("off", "stop the clock at each agent step until it is answered", choices=LOCKSTEP_MODES),
+    "lockstep": Param("off", "stop the clock at each agent step until it is answered (control: also at each tick "
+                             "while driving, until the next velocity command)", choices=LOCKSTEP_MODES),
     "step_period": Param(2.5, "the robot environment's step period (when lockstep waits for its next step)",
                          live=True, positive=True),
     "lockstep_timeout": Param(10.0, "wall seconds a lockstep hold may last before it is released", live=True,
@@ -171,6 +175,7 @@ class LoopbackRobotNode(Node):
         self.step_done = False
         self.action_key = self.answered_key = -1  # the latest action's key; the latest step answered
         self.moves = self.moves_used = 0  # non-zero commands received; those that answered steps
+        self.commanded = self.driving = False  # lockstep control: a command since the last tick; the last moved
         self.held_since: float | None = None  # wall time the current hold began
         self.sent_at = 0.0  # wall time the state last went out during a hold
         self.released_key: int | None = -1  # the step whose hold timed out (runs free until the next step;
@@ -218,6 +223,7 @@ class LoopbackRobotNode(Node):
         values = (twist.linear.x, twist.linear.y, twist.angular.z)
         if not all(math.isfinite(v) for v in values):
             return self.rejected.warn(f"cmd_vel is not finite: {values}")
+        self.commanded, self.driving = True, any(values)  # lockstep control (issue 38)
         if any(values):
             self.world.command(*values, self.params["cmd_vel_timeout"])
             self.moves += 1
@@ -263,6 +269,8 @@ class LoopbackRobotNode(Node):
             return f"the agent's {self.params['lockstep']} for step key {self.step_key}"
         if self.step_done or self.now_ns >= self.step_key + self.params["step_period"] * 1e9:
             return f"the robot environment's step after key {self.step_key}"
+        if self.params["lockstep"] == "control" and self.driving and self.world.moving and not self.commanded:
+            return "the controller's velocity command for this tick"  # issue 38: motion primitives
         return ""
 
     def _answered(self) -> bool:
@@ -271,7 +279,9 @@ class LoopbackRobotNode(Node):
         arrive before the step itself: counted). Once true for a step, it stays true."""
         if self.answered_key == self.step_key:
             return True
-        if self.action_key < self.step_key or (self.params["lockstep"] == "cmd_vel" and self.moves <= self.moves_used):
+        waiting = self.moves <= self.moves_used if self.params["lockstep"] == "cmd_vel" else \
+            self.params["lockstep"] == "control" and not self.driving  # issue 38: the primitive's first command
+        if self.action_key < self.step_key or waiting:
             return False
         self.answered_key, self.moves_used = self.step_key, self.moves
         return True
@@ -284,6 +294,7 @@ class LoopbackRobotNode(Node):
         self.navigator.control(self.now_ns)  # issue 38: the navigate_to_pose goal's velocity for this tick
         self.world.advance(self.params["tick"])
         self.now_ns += self.tick_ns
+        self.commanded = False
         self._publish_state()
         if self.amcl.due(self.world.odom_pose):
             self._publish_amcl()

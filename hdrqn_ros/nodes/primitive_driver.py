@@ -9,8 +9,9 @@ from odometry (``odom_topic``, in its own frame). Velocity commands stream on ``
 when the primitive completes, is blocked or times out after ``primitive_timeout_s``: keep
 that under the robot environment's ``step_period`` and the next step's observation is
 taken after the primitive ended. Each outcome is logged and counted on ``/diagnostics``.
-While there is no pose (no tf, no odometry: e.g. the simulator's graph) an action goes out
-as its one table command, with a throttled warning and a WARN on ``/diagnostics``.
+While there is no pose (no tf, no odometry yet) an action waits for one, the robot standing
+still, with a throttled warning and a WARN on ``/diagnostics``; one that gets none within
+``primitive_timeout_s`` ends as timed out.
 """
 from __future__ import annotations
 
@@ -95,6 +96,7 @@ class PrimitiveDriver(VelocityDriver):
             bounded_subscription(node, Odometry, params["odom_topic"], self._on_odom, DEFAULT_QOS,
                                  params["max_message_bytes"], self.logger)
         self.primitive: Primitive | None = None
+        self.pending: tuple[int, float] | None = None  # an action waiting for a pose, and when it came (s)
         self.lattice: Lattice | None = None  # this episode's grid, from its first primitive's pose
         self.outcomes: Counter[str] = Counter()
         self.last_report, self.last_outcome = "none yet", ""
@@ -144,17 +146,35 @@ class PrimitiveDriver(VelocityDriver):
         if action is None:
             self.lattice = None
             return super().command(None, stamp)
+        self.pending = (action, self._now_s())
+        return self._begin(stamp) or super().command(None, stamp)
+
+    def _begin(self, stamp) -> tuple | None:
+        """Start the pending action's primitive if there is a pose: its (publisher, first command);
+        ``None`` while it waits (until ``primitive_timeout_s`` after the action: then timed out)."""
+        action, t0 = self.pending
         pose = self.pose()
         if pose is None:
-            self.no_pose.warn(f"action {action} driven as one command, not a primitive: {self._where()}: "
-                              f"{self.pose_problem}")
-            return super().command(action, stamp)
+            self.no_pose.warn(f"action {action} waits for a pose: {self._where()}: {self.pose_problem}")
+            if self._now_s() - t0 >= self.limits.timeout_s:
+                self.pending = None
+                self.outcomes[TIMED_OUT] += 1
+                self.last_outcome = TIMED_OUT
+                self.last_report = f"action {action} timed out waiting for a pose ({self._where()})"
+                self.logger.warning(f"motion primitive: {self.last_report}")
+            return None
+        self.pending = None
         params = self.node.params
         if self.lattice is None:
             self.lattice = Lattice(pose, params["cell_size_m"], pose[2] if self.table.heading_up else 0.0)
-        self.primitive = Primitive(self.table.motion(action), self.lattice.snap(pose), self._now_s(),
-                                   params["cell_size_m"], self.table.heading_up, self.table.holonomic, self.limits)
+        self.primitive = Primitive(self.table.motion(action), self.lattice.snap(pose), t0, params["cell_size_m"],
+                                   self.table.heading_up, self.table.holonomic, self.limits)
         return self._next(pose, stamp)
+
+    def _poll_pending(self) -> None:
+        """A pending action starts as soon as its pose is there (also while a simulated clock stands still)."""
+        if self.pending is not None and (reply := self._begin(self.node.get_clock().now().nanoseconds)):
+            reply[0].publish(reply[1])
 
     def _next(self, pose, stamp) -> tuple:
         """The running primitive's command at ``pose``; the zero one once it ended (reported)."""
@@ -170,7 +190,7 @@ class PrimitiveDriver(VelocityDriver):
     def _control(self) -> None:
         """Stream the running primitive's command (the zero one, and keep trying, while the pose is missing)."""
         if self.primitive is None:
-            return
+            return self._poll_pending()
         now = self.node.get_clock().now().nanoseconds
         pose = self.pose()
         if pose is None:
@@ -201,21 +221,25 @@ class PrimitiveDriver(VelocityDriver):
     def halt(self) -> None:
         """The zero command, delivered before the node stops acting; the running primitive ends."""
         self._end_running("the node stopped")
+        self.pending = None
         self.lattice = None
         super().halt()
 
     def _stop_if_stale(self) -> None:
+        """Also (every :data:`~hdrqn_ros.nodes.nav_adapters.STALE_CHECK_S` of wall time) start a pending
+        action whose pose came."""
         if self.moving and self.stale():
             self._end_running("the observation went stale")
-            self.lattice = None
+            self.lattice, self.pending = None, None
         super()._stop_if_stale()
+        self._poll_pending()
 
     # -- health ------------------------------------------------------------------------------------
     def problems(self) -> list[str]:
         found = super().problems()
         if self.pose_problem:
-            found.append(f"motion primitives have no pose ({self._where()}): {self.pose_problem}; actions go out "
-                         f"as one command each")
+            found.append(f"motion primitives have no pose ({self._where()}): {self.pose_problem}; actions wait "
+                         f"for one, the robot standing still")
         if self.last_outcome == TIMED_OUT:
             found.append(f"the last motion primitive timed out (the robot is slower than the limits, or "
                          f"primitive_timeout_s too short): {self.last_report}")

@@ -38,8 +38,11 @@ HOLONOMIC, DIFF = HOLONOMIC_ACTIONS, HOLONOMIC_ACTIONS.with_name("actions.yaml")
 
 NAV2_ROBOT = {"odom_frame": "odom", "map_to_odom": [0.8, 0.4, 0.0], "start_yaw": 0.3, "cmd_vel_timeout": 1.0,
               "lockstep": "control", "real_time_factor": 20.0}
-"""The loopback robot's Nav2 settings. ``map -> odom`` turns nothing here: the observation is
-drawn in the costmap's frame (odom), and a turned one would differ from the simulator's view.
+"""The loopback robot's Nav2 settings. ``map -> odom`` turns nothing here: the robot
+environment's pose comes from ``/odom`` (the robot graph's), so its north-up view keeps odom's
+axes. (Turned by 0.2 rad, with that pose from tf in ``map``, every primitive still ends within
+0.02 m of its cell along the map's axes, but the costmap, square to odom, drawn into the map's
+cells does not always give the simulator's image: one of two runs took 19 steps for 20.)
 ``lockstep: control``: while the robot drives, each tick of its clock waits for the next
 command, so the control loop, closed across processes on the simulated clock, does not
 depend on how loaded the machine is (at 5x real time without it, a loaded machine's stall

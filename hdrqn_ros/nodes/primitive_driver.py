@@ -105,7 +105,7 @@ class PrimitiveDriver(VelocityDriver):
     # -- the pose ----------------------------------------------------------------------------------
     def _on_odom(self, msg: Odometry) -> None:
         p = msg.pose.pose
-        self.odom = (msg.header.frame_id, (p.position.x, p.position.y, nav.yaw_of(p.orientation)))
+        self.odom = (p.position.x, p.position.y, nav.yaw_of(p.orientation))  # in the odometry's frame
 
     def observed(self, frame_id: str = "") -> None:
         """An observation arrived (drawn in ``frame_id``): the commands go on."""
@@ -123,7 +123,7 @@ class PrimitiveDriver(VelocityDriver):
         ``pose_problem`` says why) while there is none."""
         if self.tf is None:
             self.pose_problem = "" if self.odom else f"no odometry yet on {self.odom_topic}"
-            return self.odom[1] if self.odom else None
+            return self.odom
         if not self.frame:
             self.pose_problem = "no observation yet to name the frame of the moves (or set primitive_frame)"
             return None

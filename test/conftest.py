@@ -1,11 +1,13 @@
 """Helpers shared by the multi-process tests: node processes and the test's own probe node (rclpy)."""
 from __future__ import annotations
 
+import importlib.util
+import itertools
+import os
+
 import pytest
 
 from hdrqn_ros.graph import NODE_MODULES
-import importlib.util
-
 from hdrqn_ros.nodes import STACK_DUMP_SIGNAL
 from hdrqn_ros.supervisor import ProcessSpec, python_command
 
@@ -32,6 +34,25 @@ def pytest_collection_modifyitems(items):
         elif "domain" in getattr(item, "fixturenames", ()):
             raise pytest.UsageError(f"{item.nodeid} starts node processes: add {module} to PROCESS_MODULES in "
                                     "test/conftest.py, so that it never runs beside another such test")
+
+
+_domains = itertools.count(os.getpid() % 200)
+
+
+def new_domain() -> int:
+    """A DDS domain id (20..219) no other test of this session had (the start depends on the
+    pid, so a second session side by side most likely starts elsewhere)."""
+    return next(_domains) % 200 + 20
+
+
+@pytest.fixture
+def domain(monkeypatch) -> int:
+    """A DDS domain (``ROS_DOMAIN_ID``) of this test's own, for the test process and the
+    processes it starts, so that tests side by side never meet; the loopback default."""
+    d = new_domain()
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(d))
+    monkeypatch.delenv("HDRQN_DDS_INTERFACE", raising=False)
+    return d
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -17,7 +17,7 @@ from hdrqn_ros.protocol import wire  # noqa: E402
 from hdrqn_ros.supervisor import Supervisor  # noqa: E402
 
 from conftest import node_process, ros_probe  # noqa: E402
-from test_graph import domain, wait_for  # noqa: E402, F401  (domain: a fixture)
+from test_graph import wait_for  # noqa: E402
 
 LIMIT = 1 << 20  # the sub-controller's max_message_bytes in this test
 

@@ -16,7 +16,7 @@ from hdrqn_ros.nodes import STACK_DUMP_SIGNAL
 from hdrqn_ros.supervisor import ProcessSpec, Supervisor, python_command
 from hdrqn_ros.training.export import export_policy
 
-from test_graph import ENV, domain, read_jsonl, wait_for  # noqa: F401  (domain: a fixture)
+from test_graph import ENV, read_jsonl, wait_for
 from test_onnx_export import _make_checkpoint
 
 ALGO = "hdrqn-v2"

@@ -25,7 +25,7 @@ from hdrqn_ros.recording.transitions import BagReadStats, read_episodes  # noqa:
 from hdrqn_ros.supervisor import Supervisor  # noqa: E402
 
 from conftest import node_process, ros_probe  # noqa: E402
-from test_graph import ENV, domain, graph_params, read_jsonl, wait_for  # noqa: E402, F401  (domain: a fixture)
+from test_graph import ENV, graph_params, read_jsonl, wait_for  # noqa: E402
 
 NODES = ["environment", "critic", "meta_controller", "sub_controller", "learner"]
 HUNG_TEARDOWN = """

@@ -4,12 +4,10 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
 import subprocess
 import sys
 import time
-from itertools import count
 from pathlib import Path
 
 import numpy as np
@@ -36,15 +34,8 @@ from conftest import node_process, ros_probe  # noqa: E402
 ENV = "hdrqn/GridWorld-2Goals-v0"
 FLOOD = 300
 """Bad messages of one kind sent in a burst by the malformed-messages test."""
-_domains = count((os.getpid() * 13) % 150 + 20)
 
 
-@pytest.fixture
-def domain(monkeypatch):
-    """A DDS domain of this test's own, so tests running side by side never meet."""
-    d = next(_domains) % 200 + 20
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(d))
-    return d
 
 
 def wait_for(cond, timeout: float, what: str, sup: Supervisor | None = None):

@@ -4,7 +4,6 @@ serialization, a TFMessage topic and a NavigateToPose action over DDS (one proce
 from __future__ import annotations
 
 import importlib
-import itertools
 import json
 import os
 import shutil
@@ -37,15 +36,8 @@ JAZZY_HASHES = {
 
 ROOT = Path(__file__).resolve().parents[1]
 DEADLINE_S = 60.0
-_domains = itertools.count((os.getpid() * 11 + 57) % 170 + 20)
 
 
-@pytest.fixture
-def domain(monkeypatch):
-    """A DDS domain of this test's own."""
-    d = next(_domains)
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(d))
-    return d
 
 
 def interface(type_name: str):

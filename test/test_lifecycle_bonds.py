@@ -35,7 +35,7 @@ from hdrqn_ros.supervisor import Supervisor  # noqa: E402
 
 from nav2_lifecycle_manager import BOND_TIMEOUT_S, Nav2LifecycleManager  # noqa: E402
 from ros_probe import RosProbe  # noqa: E402
-from test_graph import ENV, domain  # noqa: E402, F401  (domain: a fixture)
+from test_graph import ENV  # noqa: E402
 from test_robot_nodes import checkpoint  # noqa: E402, F401  (checkpoint: a fixture)
 
 MANAGED = ("robot_environment", "meta_controller", "sub_controller")

@@ -27,7 +27,6 @@ Skips (with the reason) where the namespace cannot be made: not root, no ``ip``,
 """
 from __future__ import annotations
 
-import itertools
 import json
 import os
 import shutil
@@ -215,15 +214,8 @@ def netns():
     assert net.name not in net.ip("netns", "list").stdout.split(), "namespace left over"
 
 
-_domains = itertools.count((os.getpid() * 17) % 150 + 30)
 
 
-@pytest.fixture
-def domain() -> int:
-    """A DDS domain of the test's own, like test_graph's fixture (not imported: test_graph pulls
-    in torch, ~9 s more for this module alone). The namespace's own loopback keeps these nodes
-    apart from every other test anyway; distinct ids keep this module's tests apart."""
-    return next(_domains) % 200 + 20
 
 
 def kill(proc: subprocess.Popen) -> None:

@@ -15,9 +15,7 @@ watched by the test's own rclpy node:
 """
 from __future__ import annotations
 
-import itertools
 import math
-import os
 import time
 
 import numpy as np
@@ -38,15 +36,8 @@ NAV2_LIKE = {"odom_frame": "odom", "map_to_odom": list(MAP_TO_ODOM), "odom_error
              "start_yaw": 0.5, "inflation_radius": 0.7, "cmd_vel_timeout": 1.0, "seed": SEED, "real_time_factor": 5.0}
 """The robot as issue 38 measured Nav2's: frames with an offset, drift, 1 s deadman, inflation."""
 
-_domains = itertools.count((os.getpid() * 13) % 150 + 40)
 
 
-@pytest.fixture
-def domain(monkeypatch) -> int:
-    """A DDS domain of this test's own (as test_graph's fixture; not imported: torch)."""
-    d = next(_domains) % 200 + 20
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(d))
-    return d
 
 
 def yaw_of(q) -> float:

@@ -33,7 +33,7 @@ from hdrqn_ros.robot_graph import NODE_MODULES  # noqa: E402
 from hdrqn_ros.supervisor import python_command  # noqa: E402
 
 from ros_probe import RosProbe  # noqa: E402
-from test_graph import ENV, domain, read_jsonl  # noqa: E402, F401  (domain: a fixture)
+from test_graph import ENV, read_jsonl  # noqa: E402
 from test_robot_nodes import checkpoint, start  # noqa: E402, F401  (checkpoint: a fixture)
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"

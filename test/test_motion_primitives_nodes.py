@@ -26,7 +26,7 @@ from hdrqn_ros.robot_graph import HOLONOMIC_ACTIONS, RobotRun, robot_processes, 
 from hdrqn_ros.supervisor import Supervisor  # noqa: E402
 from hdrqn_ros.training.learner import play  # noqa: E402
 
-from test_graph import domain, read_jsonl  # noqa: E402, F401  (domain: a fixture)
+from test_graph import read_jsonl  # noqa: E402
 from test_robot_nodes import Probe, finished  # noqa: E402
 
 POLICY = Path(__file__).resolve().parents[1] / "policies" / "hdrqn-v2_gridworld-2goals"

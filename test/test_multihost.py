@@ -61,8 +61,8 @@ from hdrqn_ros.dds import INTERFACE_ENV
 from hdrqn_ros.graph import graph_processes
 from hdrqn_ros.supervisor import Supervisor
 
-from test_graph import (ENV, check_env_log_replays_in_process, check_transitions_match_env, graph_params,  # noqa: F401
-                        domain, read_jsonl)
+from test_graph import (ENV, check_env_log_replays_in_process, check_transitions_match_env, graph_params,
+                        read_jsonl)
 
 SUBNET = "127.213.0"
 LEASE_S = 20.0

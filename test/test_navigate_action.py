@@ -39,7 +39,7 @@ from hdrqn_ros.nodes import STACK_DUMP_SIGNAL  # noqa: E402
 from hdrqn_ros.robot_graph import NODE_MODULES, RobotRun, robot_parameters, robot_processes  # noqa: E402
 from hdrqn_ros.supervisor import ProcessSpec, Supervisor, python_command  # noqa: E402
 
-from test_graph import ENV, domain, read_jsonl  # noqa: E402, F401  (domain: a fixture)
+from test_graph import ENV, read_jsonl  # noqa: E402
 from test_managed_nodes import LifecycleClient  # noqa: E402
 
 SHIPPED = Path(__file__).resolve().parents[1] / "policies" / "hdrqn-v2_gridworld-2goals"

@@ -2,12 +2,10 @@
 an rclpy node, byte for byte."""
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
 import time
-from itertools import count
 from pathlib import Path
 
 import numpy as np
@@ -30,16 +28,8 @@ IMAGE, FLOATS, STRING, CLOCK = ("sensor_msgs/msg/Image", "std_msgs/msg/Float64Mu
                                 "rosgraph_msgs/msg/Clock")
 TOPICS = {"/camera/image": (IMAGE, "best_effort", False), "/scores": (FLOATS, "reliable", False),
           "/chatter": (STRING, "reliable", True)}  # topic: (type, reliability, transient_local)
-_domains = count((os.getpid() * 7 + 101) % 180 + 20)
 
 
-@pytest.fixture
-def domain(monkeypatch):
-    """A DDS domain of this test's own (the player subprocess inherits it)."""
-    d = next(_domains) % 200 + 20
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(d))
-    monkeypatch.delenv("HDRQN_DDS_INTERFACE", raising=False)
-    return d
 
 
 def _cdr(msg) -> bytes:

@@ -34,7 +34,6 @@ from hdrqn_ros.protocol import wire  # noqa: E402
 from hdrqn_ros.supervisor import ProcessSpec, Supervisor  # noqa: E402
 
 from ros_probe import RosProbe  # noqa: E402
-from test_graph import domain  # noqa: E402, F401  (a fixture)
 
 MAP_TO_ODOM = (0.8, 0.4, 0.2)
 """x, y (m), yaw (rad) of ``odom`` in ``map``: a localised robot's offset."""

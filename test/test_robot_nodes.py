@@ -32,7 +32,7 @@ from hdrqn_ros.supervisor import ProcessSpec, Supervisor, python_command  # noqa
 from hdrqn_ros.training.learner import load_trained_agent, play  # noqa: E402
 
 from ros_probe import RosProbe  # noqa: E402
-from test_graph import ENV, domain, read_jsonl, wait_for  # noqa: E402, F401  (domain: a fixture)
+from test_graph import ENV, read_jsonl, wait_for  # noqa: E402
 from test_onnx_export import _make_checkpoint  # noqa: E402
 
 SEED = 2

@@ -39,7 +39,8 @@ from hdrqn_ros.supervisor import Supervisor  # noqa: E402
 from hdrqn_ros.throttle import BURST  # noqa: E402
 
 from ros_probe import ProbeNode, RosProbe  # noqa: E402
-from test_graph import CONFIG, ENV, _domains, start_graph  # noqa: E402
+from conftest import new_domain  # noqa: E402
+from test_graph import CONFIG, ENV, start_graph  # noqa: E402
 
 EPISODES = 100_000
 """The learner's ``episodes`` (not its default 1000); far more than the module's run time
@@ -145,7 +146,7 @@ def graph(tmp_path_factory):
     The probe subscribes to /rosout before the nodes start, so it sees their first lines."""
     tmp = tmp_path_factory.mktemp("ros_tooling")
     with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("ROS_DOMAIN_ID", str(next(_domains) % 200 + 20))
+        mp.setenv("ROS_DOMAIN_ID", str(new_domain()))
         mp.setenv("ROS_LOG_DIR", str(tmp / "ros_log"))  # rcl's log files: here, not in ~/.ros/log
         mw = RosProbe(["probe"])  # loopback defaults before rclpy.init
         sup = None

@@ -6,11 +6,9 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import subprocess
 import sys
 import time
-from itertools import count
 from pathlib import Path
 
 import pytest
@@ -30,7 +28,6 @@ EXIT_S = 30.0
 """How long the listener may take to report and exit after its own deadline."""
 QUERY_NS = 100_250_000_000
 """Between the 100.2 s and 100.3 s samples of ``odom -> base_link``."""
-_domains = count((os.getpid() * 11 + 37) % 180 + 20)
 
 LISTENER = """
 import json, sys
@@ -70,13 +67,6 @@ probe.shutdown()
 """
 
 
-@pytest.fixture
-def domain(monkeypatch):
-    """A DDS domain of this test's own (the listener process inherits it)."""
-    d = next(_domains) % 200 + 20
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(d))
-    monkeypatch.delenv("HDRQN_DDS_INTERFACE", raising=False)
-    return d
 
 
 def stamped(node, parent: str, child: str, stamp_ns: int, x: float, y: float, yaw: float, rotation=None):

@@ -11,7 +11,7 @@ from hdrqn_ros.envs.domain import NO_SUBGOAL
 from hdrqn_ros.envs.gridworld import AGENT, GOAL0, OUTSIDE, PALETTE, GridWorldBatch
 from hdrqn_ros.nodes.ros_messages import interface_class as message_class
 from hdrqn_ros.nodes.nav import NavConfigError, SubgoalTable, costmap_to_observation, robot_pose
-from hdrqn_ros.robot.ordered_visits import OrderedVisits
+from hdrqn_ros.robot.ordered_visits import CellVisits, OrderedVisits
 from hdrqn_ros.robot_graph import RobotRun, robot_parameters
 
 from conftest import NEEDS_RCLPY
@@ -55,6 +55,43 @@ def test_step_limit_truncates_and_lethal_costs_one():
 def test_bad_task_settings(kwargs, problem):
     with pytest.raises(ValueError, match=problem):
         OrderedVisits(2, **{"tolerance_m": 0.1, "max_steps": 5, **kwargs})
+
+
+NEIGHBOURS = [(1.0, 1.0), (1.25, 1.25)]
+"""Diagonal neighbours, 0.354 m apart: both within a 0.25 m tolerance of a point between them."""
+STOP = (1.0 + 0.248 * 0.8, 1.0 + 0.248 * 0.6)
+"""Where Nav2 stops when sent to place 0: 0.248 m from it, 0.097 m from place 1."""
+
+
+def test_the_aimed_place_within_tolerance_is_where_the_robot_is():
+    """A navigator sent to place 0 stops within its tolerance, nearer to place 1: the visit
+    is place 0's (the option's), in order; without an aimed place the nearest counts."""
+    task = OrderedVisits(2, tolerance_m=0.25, max_steps=50)
+    task.start(NEIGHBOURS)
+    assert task.where(STOP) == 1 and task.where(STOP, aimed=0) == 0 and task.where(STOP, aimed=1) == 1
+    arrival = task.step(STOP, aimed=0)
+    assert (arrival["at_subgoal"], arrival["collected"], arrival["extrinsic"]) == (0, True, 1.0)
+    assert task.visits == [0] and task.in_order
+    end = task.step(NEIGHBOURS[1], aimed=1)
+    assert end["terminated"] and end["success"] and task.visits == [0, 1]
+
+
+def test_an_aimed_place_out_of_tolerance_leaves_the_nearest():
+    task = OrderedVisits(2, tolerance_m=0.25, max_steps=50)
+    task.start(NEIGHBOURS)
+    assert task.where(NEIGHBOURS[1], aimed=0) == 1  # 0.354 m from the aimed place
+    assert task.where((3.0, 3.0), aimed=0) == NO_SUBGOAL
+    with pytest.raises(ValueError, match="aimed must be a place 0..1"):
+        task.where(STOP, aimed=2)
+
+
+def test_cell_visits_are_unchanged_by_the_aimed_place():
+    """Cells of places a cell apart never overlap: the robot is in one place's cell or none."""
+    task = CellVisits(2, cell_m=0.25, max_steps=50)
+    task.start([(1.0, 1.0), (1.25, 1.0)])
+    for xy in [(1.1, 1.0), (1.13, 1.0), (1.2, 1.1), (1.0, 1.2)]:
+        assert task.where(xy, aimed=0) == task.where(xy, aimed=1) == task.where(xy)
+    assert task.where((1.1, 1.0), aimed=1) == 0 and task.where((1.0, 1.2), aimed=0) == NO_SUBGOAL
 
 
 def test_places_must_match_the_goal_count():

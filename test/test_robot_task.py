@@ -11,6 +11,7 @@ from hdrqn_ros.envs.domain import NO_SUBGOAL
 from hdrqn_ros.envs.gridworld import AGENT, GOAL0, OUTSIDE, PALETTE, GridWorldBatch
 from hdrqn_ros.nodes.ros_messages import interface_class as message_class
 from hdrqn_ros.nodes.nav import NavConfigError, SubgoalTable, costmap_to_observation, robot_pose
+from hdrqn_ros.robot.episode_requests import EpisodeRequests
 from hdrqn_ros.robot.ordered_visits import CellVisits, OrderedVisits
 from hdrqn_ros.robot_graph import RobotRun, robot_parameters
 
@@ -92,6 +93,27 @@ def test_cell_visits_are_unchanged_by_the_aimed_place():
     for xy in [(1.1, 1.0), (1.13, 1.0), (1.2, 1.1), (1.0, 1.2)]:
         assert task.where(xy, aimed=0) == task.where(xy, aimed=1) == task.where(xy)
     assert task.where((1.1, 1.0), aimed=1) == 0 and task.where((1.0, 1.2), aimed=0) == NO_SUBGOAL
+
+
+def test_episode_requests_one_each_start_or_back_to_back():
+    one = EpisodeRequests(autostart=False)
+    assert not one.wanted
+    assert one.start(False, running=False, finished=False, episode=-1) == \
+        (True, "episode 0 starts when the inputs are fresh")
+    assert one.wanted
+    one.started()
+    assert not one.wanted, "one episode per start_episode: the request is cleared once it starts"
+    assert one.start(False, running=True, finished=False, episode=0)[0] is False
+    assert one.start(False, running=False, finished=True, episode=3) == (False, "finished: max_episodes reached")
+    assert one.stop(running=True, episode=0) == (True, "episode 0 ends at the next step") and one.stop_requested
+    one.ended()
+    assert not one.stop_requested and not one.wanted
+    auto = EpisodeRequests(autostart=True)
+    assert auto.wanted and auto.stop(running=False, episode=-1) == (True, "no episode running") and not auto.wanted
+    assert auto.start(True, False, False, 2) == (True, "episode 3 starts when the inputs are fresh (autostart: then "
+                                                       "back to back)")
+    auto.started()
+    assert auto.wanted
 
 
 def test_places_must_match_the_goal_count():

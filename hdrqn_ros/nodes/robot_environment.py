@@ -54,8 +54,8 @@ from hdrqn_ros.nodes.robot_input_topics import subscribe_robot_inputs
 from hdrqn_ros.nodes.robot_inputs import Waiting
 from hdrqn_ros.nodes.robot_scene import Scene, scene_at, step_images
 from hdrqn_ros.nodes.robot_step_topics import StepPublishers
-from hdrqn_ros.nodes.step_waits import WAIT_REPORTED_S, StepWaits
 from hdrqn_ros.nodes.ros_messages import bounded_subscription
+from hdrqn_ros.nodes.step_waits import WAIT_REPORTED_S, StepWaits
 from hdrqn_ros.protocol import wire
 from hdrqn_ros.robot.episode_log import EpisodeLog
 from hdrqn_ros.robot.episode_requests import EpisodeRequests
@@ -89,8 +89,9 @@ PARAMETERS = {
     "subgoal_table": Param("", "the places as a YAML table (this or subgoal_poses_topic)"),
     "subgoal_poses_topic": Param("", "the places as a latched geometry_msgs/PoseArray"),
     "new_layout_each_episode": Param(False, "start an episode only on places published since the last one ended"),
-    "visit_rule": Param("tolerance", "the robot is at a place within goal_tolerance, or in the place's cell "
-                                     "(cell_size_m square: the simulator's rule)", choices=("tolerance", "cell")),
+    "visit_rule": Param("tolerance", "the robot is at a place within goal_tolerance (the current option's place "
+                                     "first, else the nearest), or in the place's cell (cell_size_m square: the "
+                                     "simulator's rule)", choices=("tolerance", "cell")),
     "goal_tolerance": Param(0.25, "metres within which the robot is at a place (visit_rule tolerance; Nav2's "
                                   "xy_goal_tolerance)", live=True, positive=True),
     "max_steps": Param(0, "an episode's step limit (0: the domain's, 50)", live=True, low=0, high=100000),

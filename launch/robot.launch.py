@@ -2,13 +2,14 @@
 (torch) or ``policy:=...`` (an exported ONNX policy).
 
 Starts ``loopback_robot`` (a kinematic robot on the gridworld map publishing ``/clock``,
-``odom``, a rolling ``local_costmap/costmap``, ``global_costmap/costmap`` and each
-episode's places on ``subgoal_poses``), ``robot_environment`` (the environment node's
-place on a robot), ``critic``, ``meta_controller`` and ``sub_controller``, all on
-simulated time, with the parameters ``hdrqn_ros.robot_graph.robot_parameters`` gives
-(the same as ``hdrqn robot``). ``mode:=sub-drives`` (default): the sub-controller
-publishes ``cmd_vel`` each step; ``mode:=meta-only``: the meta-controller publishes one
-``goal_pose`` per option and the robot drives there. The launch shuts down when
+tf ``map -> odom -> base_link``, ``odom``, a rolling ``local_costmap/costmap`` in ``odom``
+and its updates, ``global_costmap/costmap``, each episode's places on ``subgoal_poses``, and
+serving ``navigate_to_pose``), ``robot_environment`` (the environment node's place on a
+robot), ``critic``, ``meta_controller`` and ``sub_controller``, all on simulated time, with
+the parameters ``hdrqn_ros.robot_graph.robot_parameters`` gives (the same as ``hdrqn
+robot``). ``mode:=sub-drives`` (default): each action is a motion primitive streamed on
+``cmd_vel``; ``mode:=meta-only``: the meta-controller sends one ``navigate_to_pose`` goal
+per option and the robot drives there. The launch shuts down when
 ``robot_environment`` has run ``episodes`` episodes::
 
     ros2 launch hdrqn_ros robot.launch.py checkpoint:=runs/x/checkpoints/last.pt

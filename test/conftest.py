@@ -1,9 +1,12 @@
 """Helpers shared by the multi-process tests: node processes and the test's own probe node (rclpy)."""
 from __future__ import annotations
 
+import fcntl
 import importlib.util
 import itertools
 import os
+import tempfile
+from pathlib import Path
 
 import pytest
 
@@ -37,22 +40,45 @@ def pytest_collection_modifyitems(items):
 
 
 _domains = itertools.count(os.getpid() % 200)
+DOMAIN_LOCKS = Path(tempfile.gettempdir()) / "hdrqn-test-domains"
+"""One lock file per DDS domain id a test holds: test sessions side by side on one machine
+(a second checkout's suite, a stress run) never share a domain."""
+_held: list = []  # domain locks held until this process exits (new_domain)
+
+
+def claim_domain():
+    """``(id, lock)``: a DDS domain id (20..219) no other test process on this machine holds,
+    claimed with an exclusive lock on its file in :data:`DOMAIN_LOCKS` (closing ``lock``
+    releases it)."""
+    DOMAIN_LOCKS.mkdir(exist_ok=True)
+    for _ in range(200):
+        d = next(_domains) % 200 + 20
+        lock = open(DOMAIN_LOCKS / f"{d}.lock", "w")
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            lock.close()
+            continue
+        return d, lock
+    raise RuntimeError(f"every DDS domain 20..219 is held by a test process ({DOMAIN_LOCKS})")
 
 
 def new_domain() -> int:
-    """A DDS domain id (20..219) no other test of this session had (the start depends on the
-    pid, so a second session side by side most likely starts elsewhere)."""
-    return next(_domains) % 200 + 20
+    """A domain of :func:`claim_domain` held until this process exits (a module's fixture)."""
+    d, lock = claim_domain()
+    _held.append(lock)
+    return d
 
 
 @pytest.fixture
-def domain(monkeypatch) -> int:
+def domain(monkeypatch):
     """A DDS domain (``ROS_DOMAIN_ID``) of this test's own, for the test process and the
     processes it starts, so that tests side by side never meet; the loopback default."""
-    d = new_domain()
+    d, lock = claim_domain()
     monkeypatch.setenv("ROS_DOMAIN_ID", str(d))
     monkeypatch.delenv("HDRQN_DDS_INTERFACE", raising=False)
-    return d
+    yield d
+    lock.close()
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -72,6 +72,12 @@ class Probe:
             (m.linear.x, m.linear.y, m.angular.z)), counted)
         node.create_subscription(nav.POSE_STAMPED, "/goal_pose", lambda m: self.goal_poses.append(
             (m.pose.position.x, m.pose.position.y)), counted)
+        # every navigate_to_pose goal the action server has known (its status array lists each
+        # goal until its result expires; latched: transient local)
+        self.goals: dict[bytes, int] = {}  # goal id -> its latest action_msgs/GoalStatus status
+        node.create_subscription("action_msgs/msg/GoalStatusArray", "/navigate_to_pose/_action/status",
+                                 lambda m: self.goals.update({bytes(s.goal_info.goal_id.uuid): s.status
+                                                              for s in m.status_list}), LATCHED_QOS)
         node.create_subscription(nav.POSE_TYPES["odometry"], "/odom", lambda m: self.odom_twist.append(
             (m.twist.twist.linear.x, m.twist.twist.linear.y, m.twist.twist.angular.z)))
         node.create_subscription(wire.INTS, "/subgoal", self._on_subgoal, STEP_QOS)
@@ -115,10 +121,13 @@ def finished(sup: Supervisor):
     return lambda: sup.returncodes["robot_environment"] is not None
 
 
-def test_sub_drives_the_simulators_episodes_with_one_cmd_vel_per_step(tmp_path, checkpoint, domain):
+def test_sub_drives_the_simulators_episodes_on_the_nav2_like_robot(tmp_path, checkpoint, domain):
+    """``hdrqn robot``'s sub-drives as it ships: the loopback robot as Nav2 ships a robot (tf
+    with a map -> odom offset, start yaw 0.3 rad, inflated costmaps in odom sent as updates,
+    a 1 s deadman) and each action a motion primitive streamed on cmd_vel: the simulator's
+    episodes, step for step."""
     probe = Probe()
-    # one command per action (drive: commands); the default, motion primitives: test_motion_primitives_nodes.py
-    sup, log = start(tmp_path, checkpoint, "sub-drives", sub_controller={"drive": "commands"})
+    sup, log = start(tmp_path, checkpoint, "sub-drives")
     try:
         def acting() -> bool:
             sub = probe.diagnostics.get("hdrqn_ros: /sub_controller")
@@ -141,8 +150,8 @@ def test_sub_drives_the_simulators_episodes_with_one_cmd_vel_per_step(tmp_path, 
     simulated = play(agent, cfg, EPISODES, SEED, num_envs=1)
     assert [(r["steps"], r["success"]) for r in robot] == [(e.steps, e.success) for e in simulated]
     moves = [c for c in probe.cmd_vel if c != (0.0, 0.0, 0.0)]
-    assert len(moves) == sum(r["steps"] for r in robot), "one command per agent step"
-    assert len(probe.cmd_vel) - len(moves) >= EPISODES, "a zero command at each episode's end"
+    assert len(moves) > sum(r["steps"] for r in robot), "commands streamed through each primitive"
+    assert len(probe.cmd_vel) - len(moves) >= EPISODES, "a zero command at each primitive's end"
     assert probe.goal_poses == []
     values = {name: {kv.key: kv.value for kv in status.values} for name, status in running.items()}
     sub = values["hdrqn_ros: /sub_controller"]
@@ -155,7 +164,7 @@ def test_sub_drives_the_simulators_episodes_with_one_cmd_vel_per_step(tmp_path, 
 
 
 @pytest.mark.parametrize("cut_short", [False, True], ids=["navigator-arrives", "options-time-out"])
-def test_meta_only_sends_one_goal_pose_per_option_and_no_cmd_vel(tmp_path, checkpoint, domain, cut_short):
+def test_meta_only_sends_one_navigation_goal_per_option_and_no_cmd_vel(tmp_path, checkpoint, domain, cut_short):
     """``options-time-out``: a navigator too slow to get anywhere and an ``option_timeout``
     below the step period: every option ends at its next step, away from the places. hDRQNv2's
     meta-controller then needs the sub-controller's LSTM state for a step that is no decision
@@ -167,13 +176,14 @@ def test_meta_only_sends_one_goal_pose_per_option_and_no_cmd_vel(tmp_path, check
     sup, log = start(tmp_path, checkpoint, "meta-only", **slow)
     try:
         probe.until(finished(sup), 240, f"{EPISODES} robot episodes", sup)
-        probe.until(lambda: len(probe.goal_poses) == probe.new_options, 30, "a goal_pose for every option", sup)
+        probe.until(lambda: len(probe.goals) == probe.new_options, 30, "a navigate_to_pose goal for every option",
+                    sup)
     finally:
         codes = sup.stop()
         probe.close()
     assert codes["robot_environment"] == 0, codes
-    assert probe.new_options >= EPISODES and len(probe.goal_poses) == probe.new_options
-    assert probe.cmd_vel == []
+    assert probe.new_options >= EPISODES and len(probe.goals) == probe.new_options
+    assert probe.cmd_vel == [] and probe.goal_poses == []
     episodes = read_jsonl(log)
     if cut_short:
         # the robot hardly moves, so the episodes run to the step limit through options that time out

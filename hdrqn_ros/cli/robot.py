@@ -11,8 +11,8 @@ from hdrqn_ros.cli.common import UsageError
 def add_robot(sub) -> None:
     from hdrqn_ros.robot_graph import MODES
 
-    parser = sub.add_parser("robot", help="a trained agent drives the loopback robot (Nav2's topics: odom, costmaps, "
-                                          "goal_pose or cmd_vel), episode by episode",
+    parser = sub.add_parser("robot", help="a trained agent drives the loopback robot (as Nav2 ships a robot: tf, odom, "
+                                          "costmaps, navigate_to_pose, cmd_vel), episode by episode",
                             description="Starts the loopback robot (a kinematic robot on the gridworld map, on "
                                         "simulated time), the robot-side environment, the critic and the trained "
                                         "controllers as node processes, prints each episode's visits and the running "
@@ -23,9 +23,9 @@ def add_robot(sub) -> None:
     source.add_argument("--checkpoint", help="trained weights (RUN_DIR/checkpoints/last.pt)")
     source.add_argument("--policy", help="an exported policy directory (hdrqn export; no torch in the controllers)")
     parser.add_argument("--mode", choices=MODES, default="sub-drives",
-                        help="sub-drives: the sub-controller publishes cmd_vel each step; meta-only: the "
-                             "meta-controller publishes goal_pose per option and the robot's navigator drives "
-                             "(default sub-drives)")
+                        help="sub-drives: each action is a closed-loop motion primitive the sub-controller "
+                             "streams on cmd_vel; meta-only: the meta-controller sends each option's place as a "
+                             "navigate_to_pose goal and the robot's navigator drives (default sub-drives)")
     parser.add_argument("--episodes", type=int, default=10, help="episodes to run (default 10)")
     parser.add_argument("--seed", type=int, default=0, help="layouts: the simulator's for this seed (default 0)")
     parser.add_argument("--real-time-factor", type=float, default=20.0,

@@ -29,8 +29,10 @@ POSE_TYPES = {"odometry": "nav_msgs/msg/Odometry", "pose": POSE_STAMPED,
               "pose_with_covariance": "geometry_msgs/msg/PoseWithCovarianceStamped"}
 """The robot pose messages a robot-side node reads (``pose_type``): ``/odom``, a
 ``PoseStamped``, ``/amcl_pose``."""
-LETHAL = 65
-"""Default threshold: OccupancyGrid cost (0..100) at or above it is drawn as a wall."""
+LETHAL = 100
+"""Default threshold: OccupancyGrid cost (0..100) at or above it is drawn as a wall: Nav2's
+lethal obstacles only (its inflation, 1-98, and inscribed cells, 99, lie around walls in cells
+the robot's centre may reach, as the simulator's free cells beside a wall)."""
 OBSERVATION_UP = ("north_up", "heading_up")
 """An action table's ``observation``: how the agent's image is turned (what a move's direction means)."""
 _POSE_KEYS = {"x", "y", "yaw"}

@@ -167,8 +167,9 @@ class RobotEnvironmentNode(ManagedNode):
         def subscribe(msg_type, topic: str, callback, qos) -> None:
             bounded_subscription(self, msg_type, topic, callback, qos, self.params["max_message_bytes"], self.logger)
 
-        subscribe(Int64MultiArray, wire.ACTION, self._on_action, STEP_QOS)
+        # the subgoal first: where a step's subgoal and its action wait together, the executor takes them in this order
         subscribe(Int64MultiArray, wire.SUBGOAL, self._on_subgoal, STEP_QOS)
+        subscribe(Int64MultiArray, wire.ACTION, self._on_action, STEP_QOS)
         if self.params["wait_for_learner"]:
             subscribe(Float64MultiArray, wire.CREDIT, self._on_credit, LATCHED_QOS)
 

@@ -188,7 +188,7 @@ def test_robot_graph_parameters_by_mode():
     run = RobotRun(algo="hdrqn-v2", env="hdrqn/GridWorld-2Goals-v0", view="5", checkpoint="c.pt")
     drives = robot_parameters(run)
     assert drives["sub_controller"]["action_table"].endswith("actions_holonomic.yaml")
-    assert drives["loopback_robot"]["lockstep"] == "cmd_vel" and drives["critic"]["option_timeout"] == 0.0
+    assert drives["loopback_robot"]["lockstep"] == "control" and drives["critic"]["option_timeout"] == 0.0
     assert "subgoal_poses_topic" not in drives["meta_controller"] and drives["/**"]["use_sim_time"]
     run.mode = "meta-only"
     meta = robot_parameters(run)

@@ -39,10 +39,10 @@ HOLONOMIC, DIFF = HOLONOMIC_ACTIONS, HOLONOMIC_ACTIONS.with_name("actions.yaml")
 NAV2_ROBOT = {"odom_frame": "odom", "map_to_odom": [0.8, 0.4, 0.0], "start_yaw": 0.3, "cmd_vel_timeout": 1.0,
               "lockstep": "control", "real_time_factor": 20.0}
 """The loopback robot's Nav2 settings. ``map -> odom`` turns nothing here: the robot
-environment's pose comes from ``/odom`` (the robot graph's), so its north-up view keeps odom's
-axes. (Turned by 0.2 rad, with that pose from tf in ``map``, every primitive still ends within
-0.02 m of its cell along the map's axes, but the costmap, square to odom, drawn into the map's
-cells does not always give the simulator's image: one of two runs took 19 steps for 20.)
+environment's pose comes from tf in ``map`` (the robot graph's), and its north-up view keeps
+the map's axes. (Turned by 0.2 rad, every primitive still ends within 0.02 m of its cell along
+the map's axes, but the costmap, square to odom, drawn into the map's cells does not always
+give the simulator's image: one of two runs took 19 steps for 20.)
 ``lockstep: control``: while the robot drives, each tick of its clock waits for the next
 command, so the control loop, closed across processes on the simulated clock, does not
 depend on how loaded the machine is (at 5x real time without it, a loaded machine's stall
@@ -150,7 +150,7 @@ def test_sub_drives_equal_the_simulator_with_a_1s_deadman_a_start_yaw_and_map_to
     for e in complete:  # a probe that joins late misses the first steps
         assert [heard[e][t] for t in range(1, episodes[e][0] + 1)] == sim_actions[bounds[e]:bounds[e + 1]], e
     assert len(moves) > 5 * steps, "commands stream through each primitive (a 1 s deadman would cut one)"
-    assert sub["drive"] == ("primitives from tf odom <- base_link at 20 Hz" if pose_source == "tf" else
+    assert sub["drive"] == ("primitives from tf map <- base_link at 20 Hz" if pose_source == "tf" else
                             "primitives from odometry on /odom at 20 Hz"), sub
     assert "completed" in sub["primitives"] and sub["last_primitive"].startswith("move of one cell"), sub
     ended = _outcomes(sup)

@@ -316,25 +316,29 @@ class RobotEnvironmentNode(ManagedNode):
         if new_layout and self.inputs.places_stamp < self.ended_ns:
             return self.waits.wait(f"for the next episode's places on {self.inputs.topics['places']} "
                                    f"(new_layout_each_episode: published after the last episode ended)")
-        if why := self.inputs.missing(now, self._ns("stale_after_s"), self.inputs.places_stamp if new_layout else 0):
-            return self.waits.wait(f"to start an episode: {why}")
-        try:
-            scene = self._scene(now, now)
-        except Waiting as why:
-            return self.waits.wait(f"to start an episode: {why}")
-        self._start_episode(now, scene)
+        scene = self._ready_scene(now, now, "to start an episode", self.inputs.places_stamp if new_layout else 0)
+        if scene is not None:
+            self._start_episode(now, scene)
 
     def _step_when_due(self, now: int) -> None:
         due = self.step_ns + self._ns("step_period")
         if self.pending_action is None or now < due:
             return  # the action, and the step's time
-        if why := self.inputs.missing(now, self._ns("stale_after_s")):
-            return self.waits.wait(f"for step t={self.episodes.t + 1}: {why}")
-        try:
-            scene = self._scene(due, now)
-        except Waiting as why:
-            return self.waits.wait(f"for step t={self.episodes.t + 1}: {why}")
-        self._advance(now, scene)
+        scene = self._ready_scene(due, now, f"for step t={self.episodes.t + 1}")
+        if scene is not None:
+            self._advance(now, scene)
+
+    def _ready_scene(self, at_ns: int, now: int, what: str, since_stamp: int = 0) -> Scene | None:
+        """The scene at ``at_ns`` once every input is fresh (since ``since_stamp``); else
+        ``None``, the wait reported as ``what`` waits for."""
+        why = self.inputs.missing(now, self._ns("stale_after_s"), since_stamp)
+        if not why:
+            try:
+                return self._scene(at_ns, now)
+            except Waiting as waiting:
+                why = str(waiting)
+        self.waits.wait(f"{what}: {why}")
+        return None
 
     def _new_key(self, now: int, scene: Scene) -> None:
         self.key = max(now - self.key_origin, self.key + 1)

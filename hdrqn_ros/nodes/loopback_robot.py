@@ -70,7 +70,8 @@ from hdrqn_ros.throttle import Throttle
 LOCKSTEP_MODES = ("off", "action", "cmd_vel", "control")
 """``off``; hold the clock until the sub-controller's ``action`` for the step; or until a
 velocity command after the step (``cmd_vel``); and, while the robot drives, each tick until a
-velocity command after the previous one (``control``; issue 38: motion primitives)."""
+velocity command after the previous one (``control``: a controller closing its loop on the
+simulated clock, as motion primitives do)."""
 DRIVES = ("holonomic", "diff")
 TF_QOS = keep_last(100)
 """``/tf`` as tf2_ros's broadcaster offers it: reliable, volatile, keep-last 100."""
@@ -194,7 +195,7 @@ class LoopbackRobotNode(Node):
         self.pub_global = self.create_publisher(OccupancyGrid, params["global_costmap_topic"], LATCHED_QOS)
         self.pub_places = self.create_publisher(PoseArray, params["subgoal_poses_topic"], LATCHED_QOS)
         self._new_layout()
-        # the navigate_to_pose action server, driving the robot before each tick (loopback_navigator; issue 38)
+        # the navigate_to_pose action server, driving the robot before each tick (loopback_navigator)
         self.navigator = LoopbackNavigator(self, self.world, params["map_frame"], params["tick"])
         period = params["tick"] / params["real_time_factor"] if params["real_time_factor"] > 0 else 0.001
         self.create_timer(period, self._tick, clock=Clock(clock_type=ClockType.STEADY_TIME))  # paces simulated time
@@ -223,7 +224,7 @@ class LoopbackRobotNode(Node):
         values = (twist.linear.x, twist.linear.y, twist.angular.z)
         if not all(math.isfinite(v) for v in values):
             return self.rejected.warn(f"cmd_vel is not finite: {values}")
-        self.commanded, self.driving = True, any(values)  # lockstep control (issue 38)
+        self.commanded, self.driving = True, any(values)  # lockstep control
         if any(values):
             self.world.command(*values, self.params["cmd_vel_timeout"])
             self.moves += 1
@@ -270,7 +271,7 @@ class LoopbackRobotNode(Node):
         if self.step_done or self.now_ns >= self.step_key + self.params["step_period"] * 1e9:
             return f"the robot environment's step after key {self.step_key}"
         if self.params["lockstep"] == "control" and self.driving and self.world.moving and not self.commanded:
-            return "the controller's velocity command for this tick"  # issue 38: motion primitives
+            return "the controller's velocity command for this tick"  # lockstep control
         return ""
 
     def _answered(self) -> bool:
@@ -280,7 +281,7 @@ class LoopbackRobotNode(Node):
         if self.answered_key == self.step_key:
             return True
         waiting = self.moves <= self.moves_used if self.params["lockstep"] == "cmd_vel" else \
-            self.params["lockstep"] == "control" and not self.driving  # issue 38: the primitive's first command
+            self.params["lockstep"] == "control" and not self.driving  # lockstep control: the primitive's first command
         if self.action_key < self.step_key or waiting:
             return False
         self.answered_key, self.moves_used = self.step_key, self.moves
@@ -291,7 +292,7 @@ class LoopbackRobotNode(Node):
         if waiting := self._holding():
             return self._hold(waiting)
         self.held_since = None
-        self.navigator.control(self.now_ns)  # issue 38: the navigate_to_pose goal's velocity for this tick
+        self.navigator.control(self.now_ns)  # the navigate_to_pose goal's velocity for this tick
         self.world.advance(self.params["tick"])
         self.now_ns += self.tick_ns
         self.commanded = False

@@ -229,7 +229,6 @@ class EnvAssembler(StepFollower):
         super().__init__(logger=_Prefixed(group.logger, f"group {group.ns or '/'} env {index}: "))
         self.group, self.index = group, index
         self.spec = group.spec
-        cfg = group.cfg
         self.builder_args = (1, self.spec.hierarchical)
         self.transitions = 0
         self.skipped = 0  # steps seen while waiting for an episode boundary

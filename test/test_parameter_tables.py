@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-pytest.importorskip("rclpy")
+pytest.importorskip("rclpy", reason="ROS 2 Jazzy (rclpy) is not installed here")
 
 from hdrqn_ros.nodes import parameter_tables  # noqa: E402
 from hdrqn_ros.nodes.parameters import Param  # noqa: E402

@@ -18,6 +18,7 @@ from std_msgs.msg import Header
 from hdrqn_ros.envs.gridworld import AGENT, FREE, GOAL0, GOAL_NAMES, OUTSIDE, PALETTE, WALL
 from hdrqn_ros.protocol.arrays import as_array
 from hdrqn_ros.robot.motion_primitives import Motion, motion_of
+from hdrqn_ros.robot.transforms import quaternion_yaw
 from hdrqn_ros.yaml_files import read_mapping
 
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
@@ -95,7 +96,7 @@ def _time(stamp) -> Time:
 
 def yaw_of(q) -> float:
     """Rotation about z (rad) of a ``geometry_msgs/Quaternion``."""
-    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+    return quaternion_yaw(q.x, q.y, q.z, q.w)
 
 
 def robot_pose(msg) -> tuple[float, float, float]:

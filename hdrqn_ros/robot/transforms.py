@@ -62,6 +62,11 @@ def _readonly(values, shape: tuple[int, ...], what: str) -> np.ndarray:
     return array
 
 
+def quaternion_yaw(x: float, y: float, z: float, w: float) -> float:
+    """The heading about z (rad, in ``(-pi, pi]``) of quaternion ``(x, y, z, w)``'s x axis."""
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
 @dataclass(frozen=True, eq=False)
 class Transform:
     """The pose of a child frame in its parent: ``translation`` ``(3,)`` m, ``rotation`` a unit
@@ -92,8 +97,7 @@ class Transform:
     @property
     def yaw(self) -> float:
         """The heading about z (rad, in ``(-pi, pi]``) of the rotation's x axis."""
-        x, y, z, w = self.rotation
-        return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+        return quaternion_yaw(*self.rotation)
 
     def compose(self, other: "Transform") -> "Transform":
         """``self * other``: applies ``other`` first, then ``self`` (parent<-mid composed with mid<-child)."""

@@ -94,6 +94,13 @@ class Probe:
             assert time.monotonic() < end, f"timed out after {timeout} s waiting for {what}: {sup.returncodes}"
             self.mw.spin(timeout_s=0.1)
 
+    def spin_until(self, cond, timeout: float) -> bool:
+        """Spin until ``cond()`` holds or ``timeout`` seconds pass; whether it holds."""
+        end = time.monotonic() + timeout
+        while not cond() and time.monotonic() < end:
+            self.mw.spin(timeout_s=0.1)
+        return cond()
+
     def close(self) -> None:
         self.mw.shutdown()
 

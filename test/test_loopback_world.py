@@ -5,6 +5,7 @@ and the parts that make it a Nav2 robot in miniature: Nav2's inflation costs
 (hdrqn_ros.robot.nav2_costmap), the 1 s command deadman, differential drive from any start
 yaw, a drifting ``map -> odom`` under which ``map -> odom -> base_link`` stays the true pose,
 the local costmap in ``odom``, and AMCL's rule for when it publishes a pose."""
+import itertools
 import math
 from types import SimpleNamespace
 
@@ -285,6 +286,29 @@ def test_local_costmap_in_odom_agrees_with_the_map_through_the_transform(layout,
         on_map = 0 <= row < 11 and 0 <= col < 11
         assert value == (-1 if not on_map else 100 if world.walls[row, col] else 0), (r, c, x, y)
     assert world.local_costmap(3.0, in_odom=True) is local, "the same window is not computed twice"
+
+
+@pytest.mark.parametrize("layout", ["gridworld", "fourrooms"])
+@pytest.mark.parametrize("yaw", [0.2, -0.5, 1.0])
+def test_a_turned_odom_costmap_gives_the_simulators_view_at_every_free_cell(layout, yaw):
+    """The local costmap in ``odom`` under ``map -> odom`` turned by ``yaw``, drawn north-up in
+    the map's axes (as the robot environment draws it) around a robot up to 0.01 m off its
+    cell's centre: the simulator's view at every free cell. Counting every sample, a free cell
+    beside a wall showed as wall (the turned grid's lethal cells straddle the border)."""
+    world = world_at(layout, (1, 1), map_to_odom=(0.8, 0.4, yaw))
+    layout_now, to_odom = world.layout, inverse(world.map_to_odom)
+    sim = GridWorldBatch(1, layout=layout, obstacles=False)
+    sim.reset(seed=0)
+    goals = [compose(to_odom, (x, y, 0.0))[:2] for x, y in layout_now.goal_xy]
+    free = [(r, c) for r, c in np.argwhere(~world.walls) if (r, c) not in layout_now.goal_cells]
+    for (r, c), (dx, dy) in zip(free, itertools.cycle([(0.0, 0.0), (0.01, 0.0), (0.0, -0.01), (0.007, 0.007)])):
+        x, y = world.cell_centre(r, c)
+        world.x, world.y = x + dx, y + dy
+        sim.set_state(0, (r, c), layout_now.goal_cells, [])
+        ours = costmap_to_observation(as_msg(world.local_costmap(3.0, in_odom=True)),
+                                      robot_xy=compose(to_odom, (world.x, world.y, 0.0))[:2], goals_xy=goals,
+                                      robot_yaw=math.pi / 2 - yaw, unknown="outside")
+        np.testing.assert_array_equal(ours, sim.render_obs()[0], err_msg=f"cell {(r, c)}")
 
 
 def test_identity_odom_costmap_is_the_map_frame_one():

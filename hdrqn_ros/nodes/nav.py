@@ -226,7 +226,9 @@ def costmap_to_observation(msg, robot_xy=None, view_cells: int = 5, size: int = 
     of cell ``(width // 2, height // 2)``, where a rolling local costmap keeps the robot).
     Each cell is sampled at ``n x n`` points, ``n = ceil(cell_size_m / resolution)``; it is
     a wall if any sample has cost >= ``lethal``, is unknown (-1) or lies outside the grid,
-    else free (max aggregation). The centre cell shows the agent. ``robot_yaw=None``: image
+    else free (max aggregation); a view turned against the grid (not by a multiple of 90
+    degrees: a costmap in ``odom`` under a turned ``map -> odom``) counts only the samples at
+    least half a grid cell's diagonal inside the cell, since the grid's cells straddle its border. The centre cell shows the agent. ``robot_yaw=None``: image
     up = costmap +y (north-up, like the simulator's allocentric moves); a yaw (rad): image
     up = the robot's heading (egocentric). ``goals_xy``: optional ``(x, y)`` of subgoal
     ``g = 0, 1, ...`` (costmap frame; ``None``: not drawn, e.g. collected), drawn in goal
@@ -268,8 +270,16 @@ def costmap_to_observation(msg, robot_xy=None, view_cells: int = 5, size: int = 
     if unknown not in ("wall", "outside"):
         raise ValueError(f"unknown must be 'wall' or 'outside', got {unknown!r}")
 
+    # a grid turned against the view (not by a multiple of 90 degrees) puts an obstacle up to
+    # half a grid cell's diagonal across a cell border: only samples further in than that count
+    along = (np.arange(per_cell) + 0.5) * (cell / per_cell)  # each sample's offset into its cell, m
+    inset = np.minimum(along, cell - along)
+    turned = robot_yaw is not None and abs(math.remainder(robot_yaw, math.pi / 2)) > 1e-9
+    trusted = inset >= min(res / math.sqrt(2), inset.max()) if turned else np.ones(per_cell, bool)
+
     def any_in_cell(mask: np.ndarray) -> np.ndarray:
-        return mask.reshape(view_cells, per_cell, view_cells, per_cell).any(axis=(1, 3))
+        cells = mask.reshape(view_cells, per_cell, view_cells, per_cell)
+        return cells[:, trusted][:, :, :, trusted].any(axis=(1, 3))
 
     lethal_cells, unknown_cells = any_in_cell(cost >= lethal), any_in_cell(cost < 0)
     codes = np.where(lethal_cells, WALL, np.where(unknown_cells, WALL if unknown == "wall" else OUTSIDE, FREE))

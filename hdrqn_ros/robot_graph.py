@@ -35,11 +35,11 @@ MODES = ("sub-drives", "meta-only")
 NODE_MODULES = {name: entry_point(name) for name in ("loopback_robot", "robot_environment", "critic",
                                                      "meta_controller", "sub_controller", "learner")}
 """The robot graph's node executables (:mod:`hdrqn_ros.nodes.executables`)."""
-NAV2_LOOPBACK = {"odom_frame": "odom", "map_to_odom": [0.8, 0.4, 0.0], "odom_error": [0.02, 0.01],
+NAV2_LOOPBACK = {"odom_frame": "odom", "map_to_odom": [0.8, 0.4, 0.2], "odom_error": [0.02, 0.01],
                  "inflation_radius": 0.7, "always_send_full_costmap": False, "cmd_vel_timeout": 1.0}
 """The loopback robot's settings that make it a Nav2 robot as Nav2 ships one (``nav2_bringup``'s
 Jazzy parameters: local costmap in ``odom``, inflation 0.7 m, ``always_send_full_costmap``
-false; the velocity smoother's 1 s deadman); ``map -> odom`` starts at (0.8 m, 0.4 m) and
+false; the velocity smoother's 1 s deadman); ``map -> odom`` starts at (0.8 m, 0.4 m, 0.2 rad) and
 drifts with 2% / 1% odometry error."""
 START_YAW = {"sub-drives": 0.3, "meta-only": 0.5}
 """The robot's yaw (rad) at each episode's start: never the simulator's facing."""

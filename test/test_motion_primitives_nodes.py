@@ -20,7 +20,7 @@ import yaml
 pytest.importorskip("rclpy", reason="ROS 2 Jazzy (rclpy) is not installed here")
 pytest.importorskip("onnxruntime", reason="the shipped policy needs onnxruntime")
 
-from hdrqn_ros.agents.specs import ALGO_SPECS, stack_subgoal  # noqa: E402
+from hdrqn_ros.deploy.onnx_agent import OnnxAgent  # noqa: E402
 from hdrqn_ros.deploy.onnx_policy import OnnxPolicy  # noqa: E402
 from hdrqn_ros.robot_graph import HOLONOMIC_ACTIONS, RobotRun, robot_processes, write_params  # noqa: E402
 from hdrqn_ros.supervisor import Supervisor  # noqa: E402
@@ -49,30 +49,13 @@ depend on how loaded the machine is (at 5x real time without it, a loaded machin
 of the sub-controller of 0.2 s wall, 1 s of the robot's time, lost a cell now and then)."""
 
 
-class _Role:
-    """One controller of the shipped policy, as the simulator's rollout acts with it."""
-
-    def __init__(self, policy: OnnxPolicy, role: str):
-        self.policy, self.role = policy, role
-
-    def act(self, x, state):
-        return self.policy.act(self.role, x, state)
-
-    def initial_state(self, batch_size: int):
-        return self.policy.initial_state(self.role, batch_size)
-
-
 def simulated(episodes: int) -> tuple[list[tuple[int, bool]], list[int]]:
     """The shipped policy's first ``episodes`` in the simulator (layouts of :data:`SEED`, no
     fire): (steps, success) of each, and every action, in order."""
-    policy = OnnxPolicy.load(POLICY)
-    agent = SimpleNamespace(sub=_Role(policy, "sub"), meta=_Role(policy, "meta"), spec=ALGO_SPECS[policy.algo],
-                            sub_input=stack_subgoal)
-    cfg = SimpleNamespace(env=policy.env, env_kwargs={**policy.env_kwargs, "obstacles": False},
-                          meta_state=policy.meta_state)
+    agent = OnnxAgent(OnnxPolicy.load(POLICY))
     actions = []
     sink = SimpleNamespace(write=lambda record: actions.append(int(record.action[0])))
-    stats = play(agent, cfg, episodes, SEED, num_envs=1, sink=sink)
+    stats = play(agent, agent.settings(obstacles=False), episodes, SEED, num_envs=1, sink=sink)
     return [(e.steps, bool(e.success)) for e in stats], actions[:sum(e.steps for e in stats)]
 
 

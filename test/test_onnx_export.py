@@ -19,10 +19,11 @@ from hdrqn_ros.config import build_config
 from hdrqn_ros.deploy import OnnxPolicy, PolicyError, role_io
 from hdrqn_ros.hashing import file_sha256
 from hdrqn_ros.deploy import onnx_policy
+from hdrqn_ros.deploy.onnx_agent import OnnxAgent
 from hdrqn_ros.envs.registration import make_batch
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from hdrqn_ros.training.export import export_policy
-from hdrqn_ros.training.learner import build_agent
+from hdrqn_ros.training.learner import build_agent, load_trained_agent, play
 
 ALGOS = ["hdrqn-v2", "hdrqn-v1", "hdqn", "drqn", "dqn"]
 TOL = 1e-5
@@ -303,6 +304,54 @@ def test_act_refuses_inputs_of_the_wrong_shape_or_type(exported):
         policy.act("meta", np.zeros((1, 256), np.float32), (np.zeros((1, 128), np.float32),) * 2)
     with pytest.raises(ValueError, match="no 'meta' controller"):
         OnnxPolicy.load(exported["dqn"][1]).act("meta", np.zeros((1, 44, 44, 3), np.uint8))
+
+
+# ---- the simulator plays an exported policy (hdrqn eval --policy) ----------------------
+
+@pytest.mark.parametrize("algo", ["hdrqn-v2", "hdqn", "drqn"])
+def test_an_exported_policy_plays_its_checkpoints_episodes(exported, algo):
+    """``play`` with :class:`OnnxAgent` on 3 environments (options start in some rows only;
+    epsilon 0.2, the same draws): every episode is the checkpoint's."""
+    ckpt, policy_dir = exported[algo]
+
+    def episodes(agent, cfg) -> list[tuple]:
+        return [(e.steps, bool(e.success), e.classical, e.options)
+                for e in play(agent, cfg, 6, seed=21, epsilon=0.2, num_envs=3)]
+
+    cfg, agent = load_trained_agent(ckpt)
+    simulated = episodes(agent, cfg)
+    onnx_agent = OnnxAgent(OnnxPolicy.load(policy_dir))
+    assert episodes(onnx_agent, onnx_agent.settings()) == simulated
+    assert sum(steps for steps, *_ in simulated) >= 30
+
+
+def test_eval_with_policy_prints_what_eval_with_its_checkpoint_prints(exported, capsys):
+    from hdrqn_ros.cli import main
+
+    ckpt, policy_dir = exported["hdrqn-v2"]
+    outputs = []
+    for source in (["--checkpoint", str(ckpt)], ["--policy", str(policy_dir)]):
+        assert main(["eval", *source, "--episodes", "4", "--seed", "7", "--subgoals"]) == 0
+        outputs.append(json.loads(capsys.readouterr().out))
+    assert outputs[0] == outputs[1]
+    assert outputs[0]["episodes"] == 4 and outputs[0]["algo"] == "hdrqn-v2" and outputs[0]["options"]
+
+
+def test_eval_refuses_a_bad_policy_and_a_policy_with_record(exported, tmp_path, capsys):
+    from hdrqn_ros.cli import main
+
+    assert main(["eval", "--policy", str(tmp_path / "nope"), "--episodes", "1"]) == 2
+    assert f"policy directory {tmp_path / 'nope'} does not exist" in capsys.readouterr().err
+    assert main(["eval", "--policy", str(tmp_path), "--episodes", "1"]) == 2
+    assert "policy.json does not exist" in capsys.readouterr().err
+    ckpt, policy_dir = exported["dqn"]
+    assert main(["eval", "--policy", str(policy_dir), "--record", str(tmp_path / "bag"), "--episodes", "1"]) == 2
+    assert "--record needs --checkpoint" in capsys.readouterr().err
+    assert not (tmp_path / "bag").exists()
+    with pytest.raises(SystemExit) as info:
+        main(["eval", "--policy", str(policy_dir), "--checkpoint", str(ckpt)])
+    assert info.value.code == 2
+    assert "not allowed with argument" in capsys.readouterr().err
 
 
 # ---- no torch ------------------------------------------------------------------------

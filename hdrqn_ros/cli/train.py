@@ -48,8 +48,12 @@ def add_train(sub) -> None:
 
 
 def add_eval(sub) -> None:
-    parser = sub.add_parser("eval", help="run greedy evaluation episodes of a checkpoint (and record them)")
-    parser.add_argument("--checkpoint", required=True, help="path to a checkpoint (RUN_DIR/checkpoints/last.pt)")
+    parser = sub.add_parser("eval", help="run greedy evaluation episodes of a checkpoint or an exported policy "
+                                         "(and record them)")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--checkpoint", help="path to a checkpoint (RUN_DIR/checkpoints/last.pt)")
+    source.add_argument("--policy", help="an exported policy directory (hdrqn export), acting with onnxruntime: "
+                                         "the same episodes as its checkpoint")
     parser.add_argument("--episodes", type=int, default=100)
     parser.add_argument("--seed", type=int, default=12345)
     parser.add_argument("--num-envs", type=int, help="environments played in parallel (default: one per episode)")
@@ -64,7 +68,8 @@ def add_eval(sub) -> None:
     parser.add_argument("--no-fire", action="store_true",
                         help="gridworld domains: no fire (the layouts of agent and goals stay the seed's), as on "
                              "the loopback robot (`hdrqn robot`)")
-    parser.add_argument("--record", metavar="BAG_DIR", help="record the episodes' transitions to this new bag")
+    parser.add_argument("--record", metavar="BAG_DIR",
+                        help="record the episodes' transitions to this new bag (needs --checkpoint)")
 
 
 def cmd_train(args) -> int:
@@ -153,11 +158,24 @@ def cmd_eval(args) -> int:
     for flag, value in (("--epsilon", args.epsilon), ("--meta-epsilon", args.meta_epsilon)):
         if value is not None and not 0.0 <= value <= 1.0:  # also NaN
             raise UsageError(f"{flag} must be in [0, 1], got {value}")
-    cfg, agent = load_trained_agent(args.checkpoint)
-    if args.no_fire:
-        if cfg.env not in GRID_IDS:
-            raise UsageError(f"--no-fire is for the gridworld domains; this agent was trained on {cfg.env}")
-        cfg = cfg.model_copy(update={"env_kwargs": {**cfg.env_kwargs, "obstacles": False}})
+    if args.record and args.policy:
+        raise UsageError("--record needs --checkpoint: a bag keeps the training config, which an exported "
+                         "policy does not carry")
+    no_fire = {"obstacles": False} if args.no_fire else {}
+    if args.policy:
+        from hdrqn_ros.extras import require
+
+        require("deploy", "hdrqn eval --policy", ("onnxruntime",))
+        from hdrqn_ros.deploy.onnx_agent import OnnxAgent
+        from hdrqn_ros.deploy.onnx_policy import OnnxPolicy
+
+        agent = OnnxAgent(OnnxPolicy.load(args.policy))
+        cfg = agent.settings(**no_fire)
+    else:
+        cfg, agent = load_trained_agent(args.checkpoint)
+        cfg = cfg.model_copy(update={"env_kwargs": {**cfg.env_kwargs, **no_fire}})
+    if args.no_fire and cfg.env not in GRID_IDS:
+        raise UsageError(f"--no-fire is for the gridworld domains; this agent was trained on {cfg.env}")
     sink = None
     if args.record:
         from hdrqn_ros.recording.transitions import TransitionRecorder

@@ -36,17 +36,12 @@ SEED, EPISODES = 2, 3
 HOLONOMIC, DIFF = HOLONOMIC_ACTIONS, HOLONOMIC_ACTIONS.with_name("actions.yaml")
 """The simulator's moves (north-up, holonomic); forward, back, turn left, turn right (heading-up)."""
 
-NAV2_ROBOT = {"odom_frame": "odom", "map_to_odom": [0.8, 0.4, 0.0], "start_yaw": 0.3, "cmd_vel_timeout": 1.0,
-              "lockstep": "control", "real_time_factor": 20.0}
-"""The loopback robot's Nav2 settings. ``map -> odom`` turns nothing here: the robot
-environment's pose comes from tf in ``map`` (the robot graph's), and its north-up view keeps
-the map's axes. (Turned by 0.2 rad, every primitive still ends within 0.02 m of its cell along
-the map's axes, but the costmap, square to odom, drawn into the map's cells does not always
-give the simulator's image: one of two runs took 19 steps for 20.)
-``lockstep: control``: while the robot drives, each tick of its clock waits for the next
-command, so the control loop, closed across processes on the simulated clock, does not
-depend on how loaded the machine is (at 5x real time without it, a loaded machine's stall
-of the sub-controller of 0.2 s wall, 1 s of the robot's time, lost a cell now and then)."""
+NAV2_ROBOT = {"real_time_factor": 20.0}
+"""The loopback robot as the robot graph sets it up (:data:`~hdrqn_ros.robot_graph.NAV2_LOOPBACK`:
+``map -> odom`` at (0.8 m, 0.4 m, 0.2 rad), the local costmap in ``odom``, the 1 s deadman;
+start yaw 0.3 rad; ``lockstep: control``: while the robot drives, each tick of its clock waits
+for the next command, so the control loop, closed across processes on the simulated clock,
+does not depend on how loaded the machine is), at 20x real time."""
 
 
 def simulated(episodes: int) -> tuple[list[tuple[int, bool]], list[int]]:

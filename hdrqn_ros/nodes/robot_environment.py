@@ -342,7 +342,9 @@ class RobotEnvironmentNode(ManagedNode):
 
     def _new_key(self, now: int, scene: Scene) -> None:
         self.key = max(now - self.key_origin, self.key + 1)
-        self.step_ns, self.pending_action, self.scene = now, None, scene
+        # timed from the key: a first step at the previous step's time (keys grow) is 1 ns later
+        # than now, and the critic and a lockstep robot time the step from its key
+        self.step_ns, self.pending_action, self.scene = self.key + self.key_origin, None, scene
         self.published_at = self.stepped_at = time.monotonic()
         self.waits.new_step()
         self.latest_poses += scene.pose.latest

@@ -17,8 +17,8 @@ def add_robot(sub) -> None:
                                         "simulated time), the robot-side environment, the critic and the trained "
                                         "controllers as node processes, prints each episode's visits and the running "
                                         "success, and stops after --episodes. The layouts are the simulator's for "
-                                        "--seed without fire: compare with `hdrqn eval --checkpoint C --no-fire "
-                                        "--num-envs 1 --seed S`. Node logs and episodes.jsonl go to --out.")
+                                        "--seed without fire: compare with `hdrqn eval --checkpoint C (or "
+                                        "--policy P) --no-fire --num-envs 1 --seed S`. Node logs and episodes.jsonl go to --out.")
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--checkpoint", help="trained weights (RUN_DIR/checkpoints/last.pt)")
     source.add_argument("--policy", help="an exported policy directory (hdrqn export; no torch in the controllers)")

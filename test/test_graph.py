@@ -212,8 +212,9 @@ def check_recordings(tmp_path: Path, learner_bag: Path, ros2_bag: Path) -> None:
         episodes[bag] = {ep.frames.tobytes(): (ep, meta) for _, ep, meta, _ in read_episodes([bag], cfg, 2)}
     assert len(episodes[learner_bag]) >= 8
     shared = episodes[learner_bag].keys() & episodes[ros2_bag].keys()
-    # the test's recorder may join late (DDS matching on a loaded machine took 3 of 8 episodes once)
-    assert len(shared) >= 4
+    # the test's recorder may join late (DDS matching on a loaded machine took 3 of 8 episodes once,
+    # 5 of 8 with two trainings and the other tests beside it): equal where both recorded
+    assert len(shared) >= 2
     for frames in shared:
         (a, am), (b, bm) = episodes[learner_bag][frames], episodes[ros2_bag][frames]
         assert all(np.array_equal(a.fields[k], b.fields[k]) for k in a.fields)

@@ -168,7 +168,10 @@ def test_the_node_answers_a_manager_that_ends_the_bond(domain):  # noqa: F811
             probe.spin(timeout_s=0.1)
             return bond.state == node_bond.FORMED
 
-        probe.spin(until=formed, timeout_s=60)
+        def node_heard() -> bool:  # the node's side formed, and its heartbeat reached the manager's subscription
+            return formed() and any(m.instance_id == bond.instance_id for m in heard)
+
+        probe.spin(until=node_heard, timeout_s=60)
         assert bond.state == node_bond.FORMED
         node_says = [m for m in heard if m.instance_id == bond.instance_id]
         assert node_says and all(m.active for m in node_says)

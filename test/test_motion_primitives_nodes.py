@@ -96,7 +96,9 @@ def test_sub_drives_equal_the_simulator_with_a_1s_deadman_a_start_yaw_and_map_to
                                                                                       pose_source):
     probe = Probe()
     lockstep = "control" if drive == "primitives" else "cmd_vel"  # one command per step: nothing per tick
-    sup, log = start(tmp_path, loopback_robot={**NAV2_ROBOT, "lockstep": lockstep},
+    # odometry measures in odom: north-up moves along the map's axes need odom unturned from map
+    unturned = {"map_to_odom": [0.8, 0.4, 0.0]} if pose_source == "odometry" else {}
+    sup, log = start(tmp_path, loopback_robot={**NAV2_ROBOT, "lockstep": lockstep, **unturned},
                      sub_controller={"drive": drive, "pose_source": pose_source})
     try:
         probe.until(finished(sup), 240, f"{EPISODES} robot episodes", sup)
@@ -134,6 +136,8 @@ def test_sub_drives_equal_the_simulator_with_a_1s_deadman_a_start_yaw_and_map_to
     assert len(moves) > 5 * steps, "commands stream through each primitive (a 1 s deadman would cut one)"
     assert sub["drive"] == ("primitives from tf map <- base_link at 20 Hz" if pose_source == "tf" else
                             "primitives from odometry on /odom at 20 Hz"), sub
+    warned = "primitives from odometry move along 'odom''s axes and the observation is drawn in 'map'"
+    assert (warned in sup.log_path("sub_controller").read_text()) == (pose_source == "odometry")
     assert "completed" in sub["primitives"] and sub["last_primitive"].startswith("move of one cell"), sub
     ended = _outcomes(sup)
     assert len(ended) == steps and all(" completed: " in e or " blocked: " in e for e in ended), ended

@@ -36,7 +36,8 @@ PRIMITIVE_PARAMETERS = {
                                  "measured from pose_source), or one command held for the step (commands)",
                    choices=("primitives", "commands")),
     "pose_source": Param("tf", "primitives: the robot's pose from tf (primitive_frame <- robot_base_frame) or "
-                               "odometry (odom_topic, in its own frame)", choices=("tf", "odometry")),
+                               "odometry (odom_topic, in its own frame: north-up moves follow its axes)",
+                         choices=("tf", "odometry")),
     "primitive_frame": Param("", "primitives from tf: the frame a move's direction is in ('': the observation's "
                                  "frame_id)"),
     "robot_base_frame": Param("base_link", "primitives from tf: the robot's frame"),
@@ -85,6 +86,7 @@ class PrimitiveDriver(VelocityDriver):
         self.no_pose = Throttle(self.logger, "a motion primitive has no pose")
         self.source = params["pose_source"]
         self.frame = params["primitive_frame"]  # '' until an observation names its frame
+        self.frame_warned = False  # odometry in another frame than the observation's: said once
         self.tf = self.odom = None
         self.pose_problem = ""  # why the latest pose could not be had
         if self.source == "tf":
@@ -106,6 +108,12 @@ class PrimitiveDriver(VelocityDriver):
     def _on_odom(self, msg: Odometry) -> None:
         p = msg.pose.pose
         self.odom = (p.position.x, p.position.y, nav.yaw_of(p.orientation))  # in the odometry's frame
+        if not self.table.heading_up and self.frame and msg.header.frame_id != self.frame and not self.frame_warned:
+            self.frame_warned = True
+            self.logger.warning(f"primitives from odometry move along {msg.header.frame_id!r}'s axes and the "
+                                f"observation is drawn in {self.frame!r}: north-up moves are right only while "
+                                f"{msg.header.frame_id!r} is not turned from {self.frame!r} (pose_source tf "
+                                f"measures in the observation's frame)")
 
     def observed(self, frame_id: str = "") -> None:
         """An observation arrived (drawn in ``frame_id``): the commands go on."""

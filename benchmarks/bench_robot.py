@@ -1,8 +1,8 @@
-"""A trained agent on the loopback robot against the same agent in the simulator (issue 26).
+"""A trained agent on the Nav2-like loopback robot against the same agent in the simulator (issues 26, 38).
 
 For a checkpoint (and its ONNX export), or an exported policy directory (ONNX only), runs
-``hdrqn robot`` in both modes (sub-drives: the sub-controller's ``cmd_vel``; meta-only:
-``goal_pose`` per option, the robot's navigator drives) for ``--episodes`` episodes on the
+``hdrqn robot`` in both modes (sub-drives: the sub-controller's motion primitives on
+``cmd_vel``; meta-only: one ``navigate_to_pose`` goal per option, the robot's navigator drives) for ``--episodes`` episodes on the
 simulator's layouts of ``--seed`` without fire, and the simulator itself on the same layouts
 (greedy, ``play`` with ``obstacles=False``, one environment: the layouts in the same order;
 a policy plays through :class:`~hdrqn_ros.deploy.onnx_agent.OnnxAgent`). Prints one JSON

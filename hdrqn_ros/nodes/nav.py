@@ -228,7 +228,8 @@ def costmap_to_observation(msg, robot_xy=None, view_cells: int = 5, size: int = 
     a wall if any sample has cost >= ``lethal``, is unknown (-1) or lies outside the grid,
     else free (max aggregation); a view turned against the grid (not by a multiple of 90
     degrees: a costmap in ``odom`` under a turned ``map -> odom``) counts only the samples at
-    least half a grid cell's diagonal inside the cell, since the grid's cells straddle its border. The centre cell shows the agent. ``robot_yaw=None``: image
+    least half a grid cell's diagonal inside the cell, since the grid's cells straddle its
+    border. The centre cell shows the agent. ``robot_yaw=None``: image
     up = costmap +y (north-up, like the simulator's allocentric moves); a yaw (rad): image
     up = the robot's heading (egocentric). ``goals_xy``: optional ``(x, y)`` of subgoal
     ``g = 0, 1, ...`` (costmap frame; ``None``: not drawn, e.g. collected), drawn in goal

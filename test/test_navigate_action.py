@@ -300,8 +300,12 @@ def test_reachable_places_are_visited_one_goal_per_option(tmp_path, probe):
     sup, log = meta_only(tmp_path, episodes=3)
     try:
         probe.until(finished(sup), 240, "3 robot episodes", sup)
-        probe.until(lambda: len(probe.statuses) == goals_sent() and all(
-            seen[-1] in ended for seen in probe.statuses.values()), 30, "every goal sent, and its end", sup)
+        try:
+            probe.until(lambda: len(probe.statuses) == goals_sent() and all(
+                seen[-1] in ended for seen in probe.statuses.values()), 30, "every goal sent, and its end", sup)
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}; the meta-controller's goals_sent {goals_sent()}, the statuses seen of "
+                                 f"each goal {list(probe.statuses.values())}") from None
     finally:
         codes = sup.stop()
     assert codes["robot_environment"] == 0, codes

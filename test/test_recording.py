@@ -12,9 +12,10 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from hdrqn_ros.config import build_config
+from hdrqn_ros.protocol import wire
 from hdrqn_ros.recording.bag import TYPESTORE, BagError, BagWriter, bag_summary, read_messages
-from hdrqn_ros.recording.transitions import (BagReadStats, TransitionRecorder, bag_config, episode_summary,
-                                             read_episodes)
+from hdrqn_ros.recording.transitions import (BagReadStats, RosbagsMessages, TransitionRecorder, bag_config,
+                                             episode_summary, read_episodes)
 from hdrqn_ros.training.trainer import Trainer
 
 ENV = "hdrqn/GridWorld-2Goals-v0"
@@ -149,6 +150,21 @@ def write_bag(path: Path, topics: dict[str, str], messages: list[tuple[str, obje
     return path
 
 
+def test_a_re_published_step_is_counted_once(tmp_path):
+    """An environment re-publishes a step nobody answered in time: ``bag info`` counts it
+    once, not as an episode cut short."""
+    def step(key: int, t: int, end: bool = False):
+        values = dict.fromkeys(wire.STEP_FIELDS, 0.0)
+        values.update(key=key, t=t, terminated=float(end), success=float(end), classical=float(end))
+        return wire.make_record(RosbagsMessages, wire.FLOATS, wire.STEP_FIELDS, [values[f] for f in wire.STEP_FIELDS])
+
+    steps = [step(1, 0), step(1, 0), step(2, 1), step(3, 2, end=True), step(4, 0), step(5, 1), step(5, 1),
+             step(6, 2, end=True)]
+    bag = write_bag(tmp_path / "bag", {"/env_step": wire.FLOATS}, [("/env_step", m) for m in steps])
+    assert episode_summary(bag)["/"] == {"num_envs": 1, "episodes": 2, "incomplete": 0, "mean_return": 1.0,
+                                         "success_rate": 1.0, "mean_steps": 2.0}
+
+
 def test_bad_bags_exit_2_naming_file_and_problem(tmp_path):
     not_a_bag = tmp_path / "notabag"
     not_a_bag.mkdir()
@@ -176,7 +192,15 @@ def test_bad_bags_exit_2_naming_file_and_problem(tmp_path):
     # mismatched image sizes: a two-goal recording read as the three-goal domain
     r = hdrqn("train", "--from-bag", bag, "--env", "hdrqn/GridWorld-3Goals-v0", "--out", tmp_path / "r5")
     assert r.returncode == 2 and "subgoal_images" in r.stderr and "image must be 132x44" in r.stderr
-    for out in ("r1", "r2", "r3", "r4", "r5"):
+
+    # fewer episodes than a batch: no update could run, so it is an error, not "done: 0 updates"
+    r = hdrqn("train", "--from-bag", bag, "--set", "sub.batch_size=1000", "--set", "meta.batch_size=1000",
+              "--out", tmp_path / "r6")
+    assert r.returncode == 2 and "no controller can update" in r.stderr and "batch_size 1000" in r.stderr, r.stderr
+    r = hdrqn("train", "--from-bag", bag, "--set", "meta.batch_size=1000", "--updates", "2", "--eval-every", "0",
+              "--out", tmp_path / "r7")
+    assert r.returncode == 0 and "warning: the meta controller's replay holds" in r.stderr, r.stderr
+    for out in ("r1", "r2", "r3", "r4", "r5", "r6"):
         assert not (tmp_path / out / "checkpoints").exists()
 
 
@@ -184,8 +208,6 @@ def test_observation_of_another_size_is_an_error(tmp_path):
     cfg = small_config("dqn")
     Image, Header, Time = (TYPESTORE.types[t] for t in ("sensor_msgs/msg/Image", "std_msgs/msg/Header",
                                                         "builtin_interfaces/msg/Time"))
-    from hdrqn_ros.protocol import wire
-    from hdrqn_ros.recording.transitions import RosbagsMessages
     m = RosbagsMessages()
     step = wire.make_record(m, wire.FLOATS, wire.STEP_FIELDS, [10_000_000, 0, 0, 0, 0] + [0] * 11)
     image = Image(header=Header(stamp=Time(sec=0, nanosec=10_000_000), frame_id="x"), height=84, width=84,

@@ -133,6 +133,10 @@ def _train_offline(args) -> int:
               f"incomplete ones left out)", file=sys.stderr)
     if num_episodes == 0:
         raise UsageError(f"no complete episode for {cfg.algo} in {', '.join(args.from_bag)}")
+    short = trainer.short_of_a_batch()
+    if len(short) < len(trainer.agent.controllers):  # with none left, run() says so and exits 2
+        for sentence in short:
+            print(f"  warning: {sentence}", file=sys.stderr)
     updates = args.updates or max(1, 10 * trainer.env_steps // cfg.update_every)
     summary = trainer.run(updates, evaluations=0 if args.eval_every == 0 else 5)
     before, final = summary["before_eval"] or {}, summary["final_eval"] or {}

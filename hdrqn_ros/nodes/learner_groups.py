@@ -57,13 +57,18 @@ class GroupAssembler(TransitionAssembler):
         self.last_credit: tuple | None = None
         inputs = self.inputs()
         conns = recorder.add_group(namespace, list(inputs)) if recorder is not None else {}
+        self.subscriptions = []
         for name, (type_name, handler) in inputs.items():
             if name in conns:
                 handler = recorder.recording(conns[name], handler)
-            bounded_subscription(node, interface_class(type_name), self.topic(name), handler, STEP_QOS,
-                                 max_message_bytes, logger)
+            self.subscriptions.append(bounded_subscription(node, interface_class(type_name), self.topic(name),
+                                                           handler, STEP_QOS, max_message_bytes, logger))
         self.credit_pub = node.create_publisher(Float64MultiArray, self.topic(wire.CREDIT), LATCHED_QOS)
         node.create_timer(STALL_CHECK_S, self.check_stall, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def unmatched_topics(self) -> list[str]:
+        """The group's topics that no publisher is matched to yet."""
+        return [sub.topic_name for sub in self.subscriptions if sub.get_publisher_count() == 0]
 
     def resolve_topic_name(self, topic: str) -> str:
         """``topic``'s full name, as the learner node resolves it (for log lines)."""
@@ -84,17 +89,20 @@ class GroupAssembler(TransitionAssembler):
 
     def stats(self) -> dict:
         """The assembler's counters, plus ``acked_episodes``/``acked_steps``: the episodes
-        (and their transitions) already durable in the learner's bag when recording."""
-        return {**super().stats(), "acked_episodes": self.acked_episodes, "acked_steps": self.acked_steps}
+        (and their transitions) already durable in the learner's bag when recording, and
+        ``no_publisher_yet``: the topics no publisher is matched to (no credit ahead until
+        there is none)."""
+        return {**super().stats(), "acked_episodes": self.acked_episodes, "acked_steps": self.acked_steps,
+                "no_publisher_yet": self.unmatched_topics()}
 
     def publish_credit(self, window: int, owed_ok: bool, eps: tuple[float, float], epoch: float,
                        force: bool = False) -> None:
         """Publish ``learner_credit`` when the credit or the epsilons changed (or ``force``).
 
-        No credit ahead before the learner holds the group's first heard step together with
-        the other nodes' answers to it (critic, action, subgoal): a subscription matched late
-        (discovery is per topic) would miss them, and the env would run on while every later
-        step waits for them.
+        No credit ahead before every subscription of the group has a publisher matched and
+        the learner holds the group's first heard step together with the other nodes' answers
+        to it (critic, action, subgoal): a subscription matched late (discovery is per topic)
+        would miss them, and the env would run on while every later step waits for them.
         Without credit the env re-publishes its step after ``action_timeout`` and the
         controllers their answers, which the late subscription then gets.
 
@@ -102,7 +110,7 @@ class GroupAssembler(TransitionAssembler):
         received, and at most :data:`MAX_LAG` ahead of what it has assembled (a batch of N
         environments: N env steps per step)."""
         if not self.synced and self.first_step is not None:
-            self.synced = self.holds_answers(self.first_step)
+            self.synced = not self.unmatched_topics() and self.holds_answers(self.first_step)
         n = max(1, len(self.envs))
         credit = self.env_steps_seen + window * n if owed_ok and self.synced else self.env_steps_seen
         assembled = self.assembled_env_steps

@@ -109,8 +109,8 @@ PARAMETERS = {
     "autostart": Param(True, "run episodes back to back (false: one per ~/start_episode)", live=True),
     "max_episodes": Param(0, "exit after this many episodes (0: never)", live=True, low=0, high=2**31),
     "episode_log": Param("", "append each finished episode to this JSON-lines file ('': off)"),
-    "wait_for_learner": Param(False, "start the first episode once a learner is heard on learner_credit (a learner "
-                                     "that records the episodes gets all of them)"),
+    "wait_for_learner": Param(False, "step only while the learner's learner_credit allows, as the training graph's "
+                                     "environment does (a learner that records the episodes gets all of them)"),
 }
 """The robot environment's parameters; the live ones take effect at the next step."""
 
@@ -135,7 +135,7 @@ class RobotEnvironmentNode(ManagedNode):
             if params["visit_rule"] == "cell" else OrderedVisits(self.num_subgoals, params["goal_tolerance"], max_steps)
         self.episodes = RobotEpisodes(self.task, EpisodeLog(params["episode_log"]), self.get_logger())
         self.inputs = subscribe_robot_inputs(self, self.logger, params, self.num_subgoals, self.view, self._on_pose,
-                                             (wire.ACTION, wire.SUBGOAL))
+                                             (wire.ACTION, wire.SUBGOAL, wire.CREDIT))
         # step keys are ROS time: simulated as it is, wall time since the node started (below 2^53)
         self.key_origin = 0 if self.get_parameter("use_sim_time").value else time.time_ns() - 10**9
         self._reset()
@@ -150,7 +150,7 @@ class RobotEnvironmentNode(ManagedNode):
 
     def _reset(self) -> None:
         """No episode yet (the first starts as ``autostart`` says), nothing heard from the learner."""
-        self.learner_heard = False
+        self.credit: int | None = None  # the learner's credit: env steps it lets this node take (None: not heard)
         self.requests = EpisodeRequests(self.params["autostart"])
         self.running = False
         self.scene: Scene | None = None  # the latest step's
@@ -234,8 +234,17 @@ class RobotEnvironmentNode(ManagedNode):
             self.option_subgoal = int(chosen[0])
             self._publish_markers()
 
-    def _on_credit(self, _msg: Float64MultiArray) -> None:
-        self.learner_heard = True
+    def _on_credit(self, msg: Float64MultiArray) -> None:
+        try:
+            self.credit = int(wire.read_record(msg, wire.CREDIT_FIELDS)["credit_steps"])
+        except wire.ProtocolError as exc:
+            self.inputs.reject(wire.CREDIT, exc)
+            return
+        self._tick()
+
+    def _credit_short(self) -> bool:
+        """With ``wait_for_learner``: the learner's credit does not cover the next step."""
+        return self.params["wait_for_learner"] and self.episodes.env_steps >= (self.credit or 0)
 
     def _on_start(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """One episode: the next, once the inputs are fresh (with ``autostart``: they run back to back again)."""
@@ -274,14 +283,17 @@ class RobotEnvironmentNode(ManagedNode):
         return OK, state, values
 
     def _watchdog(self) -> None:
-        """Re-publish a step whose action has not come within ``action_timeout``."""
-        if not self.running or self.pending_action is not None or not self.active:
+        """Re-publish a step whose action, or the learner's credit for the next, has not come
+        within ``action_timeout`` (a subscription matched late gets the step and its answers)."""
+        if not self.running or not self.active or (self.pending_action is not None and not self._credit_short()):
             return
         waited = time.monotonic() - self.published_at
         if waited >= self.params["action_timeout"]:
-            self.get_logger().warning(
-                f"no action for step t={self.episodes.t} of episode {self.episodes.episode} after {waited:.1f} s on "
-                f"{self.resolve_topic_name(wire.ACTION)} (is the sub_controller running?); re-publishing the step")
+            missing = f"the learner's credit on {self.resolve_topic_name(wire.CREDIT)}" \
+                if self.pending_action is not None else \
+                f"an action on {self.resolve_topic_name(wire.ACTION)} (is the sub_controller running?)"
+            self.get_logger().warning(f"no {missing} for step t={self.episodes.t} of episode {self.episodes.episode} "
+                                      f"after {waited:.1f} s; re-publishing the step")
             self._publish()
             self.published_at = time.monotonic()
 
@@ -306,7 +318,7 @@ class RobotEnvironmentNode(ManagedNode):
         return scene
 
     def _start_when_ready(self, now: int) -> None:
-        if self.params["wait_for_learner"] and not self.learner_heard:
+        if self.params["wait_for_learner"] and self.credit is None:
             return self.waits.wait(f"for a learner on {self.resolve_topic_name(wire.CREDIT)}")
         if self.inputs.places is None:
             why = self.inputs.refused.get("places")
@@ -324,6 +336,10 @@ class RobotEnvironmentNode(ManagedNode):
         due = self.step_ns + self._ns("step_period")
         if self.pending_action is None or now < due:
             return  # the action, and the step's time
+        if self._credit_short():
+            return self.waits.wait(f"for step t={self.episodes.t + 1}: the learner's credit on "
+                                   f"{self.resolve_topic_name(wire.CREDIT)} ({self.credit} steps, {self.episodes.env_steps} "
+                                   f"taken; none ahead before it hears every topic it records)")
         scene = self._ready_scene(due, now, f"for step t={self.episodes.t + 1}")
         if scene is not None:
             self._advance(now, scene)

@@ -301,14 +301,15 @@ def read_episodes(paths, cfg: TrainConfig, num_subgoals: int, stats: BagReadStat
 
 
 def episode_summary(path) -> dict[str, dict]:
-    """Per group of a recording (from its ``env_step`` topic alone): the environments it
-    steps, complete episodes, mean return (classical reward), success rate, mean length,
-    and episodes cut short."""
+    """Per group of a recording (from its ``env_step`` topic alone, a re-published step
+    counted once): the environments it steps, complete episodes, mean return (classical
+    reward), success rate, mean length, and episodes cut short."""
     groups = {wire.group_topic(ns, wire.ENV_STEP): ns for ns, have in bag_groups(path).items()
               if have.get(wire.ENV_STEP) == wire.FLOATS}
     acc = {ns: {"episodes": 0, "incomplete": 0, "returns": [], "successes": 0, "steps": 0, "num_envs": 0}
            for ns in groups.values()}
     open_return: dict[tuple[str, int], float | None] = {}  # (group, environment) -> return so far
+    last_key: dict[tuple[str, int], int] = {}  # (group, environment) -> its latest step's key
     for topic, type_name, _t, cdr in read_messages(path, topics=groups):
         ns, totals = groups[topic], acc[groups[topic]]
         try:
@@ -317,6 +318,9 @@ def episode_summary(path) -> dict[str, dict]:
             raise BagError(f"{path}: topic {topic}: {exc}") from None
         totals["num_envs"] = len(rows)
         for i, step in enumerate(rows):
+            if last_key.get((ns, i)) == int(step["key"]):
+                continue  # a step re-published (no answer came in time): once is counted
+            last_key[ns, i] = int(step["key"])
             so_far = open_return.get((ns, i))
             if step["t"] == 0:
                 totals["incomplete"] += so_far is not None

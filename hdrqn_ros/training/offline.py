@@ -21,6 +21,15 @@ class OfflineTrainer(Learner):
         self.env_steps += steps
         return n
 
+    def short_of_a_batch(self) -> list[str]:
+        """The controllers whose replay holds fewer episodes than their ``batch_size`` (they
+        cannot update offline), each as a sentence naming the counts."""
+        section = {"meta": "meta", "sub": "sub" if self.agent.meta is not None else "flat"}
+        return [f"the {ctrl.name} controller's replay holds {len(ctrl.replay)} episodes, fewer than its batch_size "
+                f"{ctrl.cfg.batch_size}: it cannot update (record more episodes, or --set "
+                f"{section[ctrl.name]}.batch_size={max(1, len(ctrl.replay))})"
+                for ctrl in self.agent.controllers if len(ctrl.replay) < ctrl.cfg.batch_size]
+
     def run(self, updates: int, evaluations: int = 5) -> dict:
         """``updates`` updates of each controller, with ``evaluations`` greedy evaluations
         spread over them (plus one before the first update); returns the summary written
@@ -29,6 +38,8 @@ class OfflineTrainer(Learner):
             raise ValueError("no episodes to train on: the replay is empty")
         if updates < 1:
             raise ValueError(f"updates must be >= 1, got {updates}")
+        if len(short := self.short_of_a_batch()) == len(self.agent.controllers):
+            raise ValueError("no controller can update: " + "; ".join(short))
         self.begin()
         before = self.evaluate() if evaluations else None
         marks = {round(updates * (i + 1) / evaluations) for i in range(evaluations)} if evaluations else set()

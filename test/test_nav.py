@@ -295,3 +295,10 @@ def test_costmap_size_mismatch_is_a_clear_error():
     msg.info.width = 5
     with pytest.raises(NavConfigError, match="costmap is 5x4 cells but has 16 data values"):
         costmap_to_observation(msg)
+
+
+def test_a_costmap_origin_that_is_not_finite_is_a_clear_error():
+    msg = grid(np.zeros((4, 4)))
+    msg.info.origin.position.x = float("nan")
+    with pytest.raises(NavConfigError, match=r"costmap origin must be finite, got \(nan, "):
+        costmap_to_observation(msg)

@@ -257,6 +257,8 @@ def costmap_to_observation(msg, robot_xy=None, view_cells: int = 5, size: int = 
     if not (math.isfinite(cell) and cell > 0):
         raise ValueError(f"cell_size_m must be positive, got {cell_size_m!r}")
     ox, oy = float(info.origin.position.x), float(info.origin.position.y)
+    if not (math.isfinite(ox) and math.isfinite(oy)):
+        raise NavConfigError(f"costmap origin must be finite, got ({ox}, {oy})")
     rx, ry = (ox + (w // 2 + 0.5) * res, oy + (h // 2 + 0.5) * res) if robot_xy is None else map(float, robot_xy)
     fx, fy = (0.0, 1.0) if robot_yaw is None else (math.cos(robot_yaw), math.sin(robot_yaw))  # image up
     per_cell = max(1, math.ceil(cell / res - 1e-6))

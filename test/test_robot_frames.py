@@ -385,6 +385,47 @@ def test_start_episode_starts_one_episode(tmp_path, domain):
     assert [int(s["episode"]) for s in robot.steps] == [0] * 4 + [1] * 4
 
 
+def test_a_recording_learners_credit_paces_the_steps(tmp_path, domain):
+    """``wait_for_learner`` (``hdrqn robot --record``): no episode before a learner is heard,
+    no step beyond its credit (the step waits, a WARN naming the credit, and is re-published
+    after ``action_timeout`` for a subscription of the learner matched late), then the
+    episode runs on the credit. Before: any credit message let every step go, and a recording
+    lost the answers the learner's late subscriptions missed."""
+    robot = FakeRobot()
+    robot.plan = robot.moves = []
+    credit = robot.node.create_publisher(wire.FLOATS, wire.CREDIT, LATCHED_QOS)
+    sup = start(tmp_path, "wait_for_learner:=true", "max_steps:=3", "action_timeout:=1.0", "pose_topic:=/amcl_pose",
+                "pose_type:=pose_with_covariance")
+    sent = [0.0]
+
+    def tick() -> None:
+        robot.publish_amcl()
+        if time.monotonic() - sent[0] > 0.5:
+            sent[0] = time.monotonic()
+            robot.costmap.publish(robot.grid("map", (0.0, 0.0)))
+
+    def grant(steps: int) -> None:
+        credit.publish(wire.make_record(robot.node, wire.FLOATS, wire.CREDIT_FIELDS, [steps, 0.0, 0.0, 0, 1.0]))
+
+    try:
+        robot.publish_places()
+        robot.run(lambda: robot.warned("for a learner"), 60, "the wait for a learner", sup, every=tick)
+        assert not robot.steps
+        grant(0)  # heard, no credit ahead: the learner does not yet hold the first step's answers
+        robot.run(lambda: robot.steps and robot.warned("learner's credit"), 60, "the wait for credit", sup,
+                  every=tick)
+        robot.run(lambda: "no credit from the learner" in robot.log(sup), 60, "the step re-published", sup,
+                  every=tick)
+        assert [int(s["t"]) for s in robot.steps] == [0], robot.steps
+        grant(10)
+        robot.run(lambda: any(s["truncated"] or s["terminated"] for s in robot.steps), 60, "the episode's end", sup,
+                  every=tick)
+    finally:
+        sup.stop()
+        robot.close()
+    assert [int(s["t"]) for s in robot.steps[:4]] == [0, 1, 2, 3], robot.steps
+
+
 # -- the parts on their own (no processes) ------------------------------------------------------------
 def _inputs():
     import logging

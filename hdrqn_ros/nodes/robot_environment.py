@@ -289,9 +289,9 @@ class RobotEnvironmentNode(ManagedNode):
             return
         waited = time.monotonic() - self.published_at
         if waited >= self.params["action_timeout"]:
-            missing = f"the learner's credit on {self.resolve_topic_name(wire.CREDIT)}" \
+            missing = f"credit from the learner on {self.resolve_topic_name(wire.CREDIT)}" \
                 if self.pending_action is not None else \
-                f"an action on {self.resolve_topic_name(wire.ACTION)} (is the sub_controller running?)"
+                f"action on {self.resolve_topic_name(wire.ACTION)} (is the sub_controller running?)"
             self.get_logger().warning(f"no {missing} for step t={self.episodes.t} of episode {self.episodes.episode} "
                                       f"after {waited:.1f} s; re-publishing the step")
             self._publish()

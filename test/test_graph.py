@@ -469,3 +469,39 @@ def test_malformed_messages_are_rejected_and_logged(domain, tmp_path):
         most = BURST + 1 + math.ceil(flood_s / THROTTLE_PERIOD_S)
         assert BURST <= len(lines) <= most, f"{len(lines)} rejection lines for {topic} after a flood of {FLOOD} " \
                                             f"read in {flood_s:.0f} s (at most {most})"
+
+
+def test_the_learner_grants_no_credit_ahead_while_a_topic_has_no_publisher(domain, tmp_path):
+    """DDS matches each topic on its own: until every one of a group's topics has a publisher
+    matched, the learner's credit stays at the steps it has heard (the topics still without
+    one are in its status), even when it holds the first step's answers; then it runs ahead."""
+    import logging
+    import queue
+
+    from hdrqn_ros.nodes.learner_groups import GroupAssembler
+    from hdrqn_ros.training.learner import Learner
+
+    cfg = build_config([], algo="hdrqn-v2", env=ENV, episodes=1, num_envs=1)
+    learner = Learner(cfg, tmp_path / "run", progress=False, tensorboard=False)
+    mw = ros_probe()
+    try:
+        node, other = mw.create_node("learner_probe"), mw.create_node("publishers")
+        group = GroupAssembler(node, "", learner, queue.Queue(), logging.getLogger("test"), 1 << 20, 10.0)
+        topics = {name: type_name for name, (type_name, _) in group.inputs().items()}
+        assert sorted(group.unmatched_topics()) == sorted(f"/{name}" for name in topics)
+        group.first_step, group.holds_answers = [{}], lambda rows: True  # the first step's answers held
+        late = wire.SUB_STATE
+        publishers = [other.create_publisher(type_name, name, STEP_QOS) for name, type_name in topics.items()
+                      if name != late]
+        mw.spin(until=lambda: group.unmatched_topics() == [f"/{late}"], timeout_s=60)
+        assert group.unmatched_topics() == [f"/{late}"] and group.stats()["no_publisher_yet"] == [f"/{late}"]
+        group.publish_credit(20, True, (0.1, 0.1), 1.0)
+        assert group.last_credit[0] == group.env_steps_seen == 0 and not group.synced
+        publishers.append(other.create_publisher(topics[late], late, STEP_QOS))
+        mw.spin(until=lambda: not group.unmatched_topics(), timeout_s=60)
+        assert not group.unmatched_topics()
+        group.publish_credit(20, True, (0.1, 0.1), 1.0)
+        assert group.synced and group.last_credit[0] == 20
+    finally:
+        mw.shutdown()
+        learner.log.close()

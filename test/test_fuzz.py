@@ -935,6 +935,7 @@ def long_work_stubbed(monkeypatch):
 @example(argv=["bag", "info", "bag"])
 @example(argv=["bag", "repair", "bag"])
 @example(argv=["train", "--from-bag", "bag", "--out", "offline"])
+@example(argv=["eval", "--policy", "", "--subgoals", "--no-fire"])
 def test_cli_exits_0_1_2_without_traceback(argv, recording, capsys, long_work_stubbed):
     with cli_workdir(recording):
         rc = run_cli(argv, capsys)

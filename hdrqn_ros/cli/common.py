@@ -8,6 +8,13 @@ class UsageError(Exception):
     """Misuse of the command line: printed without a traceback, exit code 2."""
 
 
+def given_paths(**paths: str | None) -> None:
+    """Refuse a path option given as an empty string (``flag=value``; ``None``: not given)."""
+    for flag, value in paths.items():
+        if value is not None and not value.strip():
+            raise UsageError(f"--{flag.replace('_', '-')} is empty: give a path")
+
+
 def config_from_args(args, base: dict | None = None, **flags):
     """The TrainConfig of a ``train``/``up`` command line: ``base``, files, then --set, then flags."""
     from hdrqn_ros.config import build_config, parse_set

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import sys
 
+from hdrqn_ros.cli.common import given_paths
+
 
 def add_export(sub) -> None:
     parser = sub.add_parser("export", help="write a checkpoint's controllers as ONNX models (torch-free acting)",
@@ -19,6 +21,7 @@ def add_export(sub) -> None:
 def cmd_export(args) -> int:
     from hdrqn_ros.extras import require
 
+    given_paths(checkpoint=args.checkpoint, out=args.out)
     require("deploy", "hdrqn export", ("onnx",) if args.no_verify else None)
     from hdrqn_ros.training.export import export_policy
 

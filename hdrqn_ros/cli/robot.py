@@ -5,7 +5,7 @@ import json
 import sys
 from pathlib import Path
 
-from hdrqn_ros.cli.common import UsageError
+from hdrqn_ros.cli.common import UsageError, given_paths
 
 
 def add_robot(sub) -> None:
@@ -70,6 +70,7 @@ def cmd_robot(args) -> int:
         require_rclpy()
     except RosNotInstalled as exc:
         raise UsageError(str(exc)) from None
+    given_paths(checkpoint=args.checkpoint, policy=args.policy, record=args.record, out=args.out)
     if args.record and not args.policy:
         raise UsageError("--record needs --policy (an exported, frozen policy: hdrqn export): the recording "
                          "learner's weights would replace a checkpoint's")

@@ -5,7 +5,7 @@ import json
 import sys
 from pathlib import Path
 
-from hdrqn_ros.cli.common import UsageError, config_from_args, done_line
+from hdrqn_ros.cli.common import UsageError, config_from_args, done_line, given_paths
 
 
 def add_train(sub) -> None:
@@ -162,11 +162,12 @@ def cmd_eval(args) -> int:
     for flag, value in (("--epsilon", args.epsilon), ("--meta-epsilon", args.meta_epsilon)):
         if value is not None and not 0.0 <= value <= 1.0:  # also NaN
             raise UsageError(f"{flag} must be in [0, 1], got {value}")
-    if args.record and args.policy:
+    given_paths(checkpoint=args.checkpoint, policy=args.policy)
+    if args.record and args.policy is not None:
         raise UsageError("--record needs --checkpoint: a bag keeps the training config, which an exported "
                          "policy does not carry")
     no_fire = {"obstacles": False} if args.no_fire else {}
-    if args.policy:
+    if args.policy is not None:
         from hdrqn_ros.extras import require
 
         require("deploy", "hdrqn eval --policy", ("onnxruntime",))

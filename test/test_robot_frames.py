@@ -165,6 +165,13 @@ class FakeRobot:
             msg.poses.append(pose)
         self.places.publish(msg)
 
+    def publish_amcl_and_map_costmap(self) -> None:
+        """``/amcl_pose`` now, and a free local costmap in ``map`` about twice a second."""
+        self.publish_amcl()
+        if time.monotonic() - self.costmap_sent > 0.5:
+            self.costmap_sent = time.monotonic()
+            self.costmap.publish(self.grid("map", (0.0, 0.0)))
+
     def publish_amcl(self) -> None:
         msg = self.node.msg("geometry_msgs/msg/PoseWithCovarianceStamped")()
         msg.header.stamp, msg.header.frame_id = self.stamp(), "map"
@@ -351,13 +358,7 @@ def test_start_episode_starts_one_episode(tmp_path, domain):
     robot.plan = robot.moves = []
     sup = start(tmp_path, "autostart:=false", "max_steps:=3", "pose_topic:=/amcl_pose",
                 "pose_type:=pose_with_covariance")
-    sent = [0.0]
-
-    def tick() -> None:
-        robot.publish_amcl()
-        if time.monotonic() - sent[0] > 0.5:
-            sent[0] = time.monotonic()
-            robot.costmap.publish(robot.grid("map", (0.0, 0.0)))
+    tick = robot.publish_amcl_and_map_costmap
 
     client = robot.node.create_client(Trigger, "/robot_environment/start_episode")
 
@@ -396,13 +397,7 @@ def test_a_recording_learners_credit_paces_the_steps(tmp_path, domain):
     credit = robot.node.create_publisher(wire.FLOATS, wire.CREDIT, LATCHED_QOS)
     sup = start(tmp_path, "wait_for_learner:=true", "max_steps:=3", "action_timeout:=1.0", "pose_topic:=/amcl_pose",
                 "pose_type:=pose_with_covariance")
-    sent = [0.0]
-
-    def tick() -> None:
-        robot.publish_amcl()
-        if time.monotonic() - sent[0] > 0.5:
-            sent[0] = time.monotonic()
-            robot.costmap.publish(robot.grid("map", (0.0, 0.0)))
+    tick = robot.publish_amcl_and_map_costmap
 
     def grant(steps: int) -> None:
         credit.publish(wire.make_record(robot.node, wire.FLOATS, wire.CREDIT_FIELDS, [steps, 0.0, 0.0, 0, 1.0]))

@@ -338,8 +338,8 @@ class RobotEnvironmentNode(ManagedNode):
             return  # the action, and the step's time
         if self._credit_short():
             return self.waits.wait(f"for step t={self.episodes.t + 1}: the learner's credit on "
-                                   f"{self.resolve_topic_name(wire.CREDIT)} ({self.credit} steps, {self.episodes.env_steps} "
-                                   f"taken; none ahead before it hears every topic it records)")
+                                   f"{self.resolve_topic_name(wire.CREDIT)} ({self.credit} steps, "
+                                   f"{self.episodes.env_steps} taken; none ahead before it hears every topic it records)")
         scene = self._ready_scene(due, now, f"for step t={self.episodes.t + 1}")
         if scene is not None:
             self._advance(now, scene)

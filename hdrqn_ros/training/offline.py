@@ -28,7 +28,7 @@ class OfflineTrainer(Learner):
         return [f"the {ctrl.name} controller's replay holds {len(ctrl.replay)} episodes, fewer than its batch_size "
                 f"{ctrl.cfg.batch_size}: it cannot update (record more episodes, or --set "
                 f"{section[ctrl.name]}.batch_size={max(1, len(ctrl.replay))})"
-                for ctrl in self.agent.controllers if len(ctrl.replay) < ctrl.cfg.batch_size]
+                for ctrl in self.agent.controllers if not self._has_data(ctrl, offline=True)]
 
     def run(self, updates: int, evaluations: int = 5) -> dict:
         """``updates`` updates of each controller, with ``evaluations`` greedy evaluations

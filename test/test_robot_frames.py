@@ -119,9 +119,7 @@ class FakeRobot:
     def publish_tf_and_costmap(self, with_base: bool = True) -> None:
         """``/tf`` now, and the local costmap about twice a second (Nav2's ``publish_frequency``)."""
         self.publish_tf(with_base)
-        if time.monotonic() - self.costmap_sent > 0.5:
-            self.costmap_sent = time.monotonic()
-            self.costmap.publish(self.odom_grid())
+        self.publish_costmap_at_2hz(self.odom_grid)
 
     def publish_static(self) -> None:
         """``base_footprint -> base_link`` (0.1 m up) on ``/tf_static``."""
@@ -168,9 +166,13 @@ class FakeRobot:
     def publish_amcl_and_map_costmap(self) -> None:
         """``/amcl_pose`` now, and a free local costmap in ``map`` about twice a second."""
         self.publish_amcl()
+        self.publish_costmap_at_2hz(lambda: self.grid("map", (0.0, 0.0)))
+
+    def publish_costmap_at_2hz(self, make_grid) -> None:
+        """``make_grid()`` on the local costmap topic if the last was sent over 0.5 s ago."""
         if time.monotonic() - self.costmap_sent > 0.5:
             self.costmap_sent = time.monotonic()
-            self.costmap.publish(self.grid("map", (0.0, 0.0)))
+            self.costmap.publish(make_grid())
 
     def publish_amcl(self) -> None:
         msg = self.node.msg("geometry_msgs/msg/PoseWithCovarianceStamped")()

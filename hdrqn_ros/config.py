@@ -57,6 +57,14 @@ class ControllerConfig(_Strict):
     replay_bytes: int | None = Field(None, ge=1, description="optional bound on replay memory")
     loss: Literal["mse", "huber"] = "mse"
     grad_clip: float | None = Field(10.0, gt=0.0)
+    sampling: Literal["windows", "whole"] = Field("windows", description="windows: the thesis's bootstrapped "
+                                                  "random updates, zero-state windows of seq_len; whole: whole "
+                                                  "segments from their start (an episode of options for the "
+                                                  "meta-controller, an option for the sub-controller), as acting "
+                                                  "unrolls them, loss on every step (docs/training.md)")
+    time_limit: Literal["bootstrap", "terminal"] = Field("bootstrap", description="an episode cut by the step "
+                                                         "limit: bootstrap its last step, or treat it as terminal "
+                                                         "(for a controller that cannot see the time left)")
     window_history: bool = Field(False, description="windows begin up to n/2 steps before their first loss "
                                  "step (inside the option), so every loss step has history (docs/training.md)")
     epsilon: EpsilonSchedule = EpsilonSchedule()

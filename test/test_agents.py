@@ -130,7 +130,7 @@ def test_the_target_discounts_with_the_gamma_configured_at_update_time(grad_clip
     assert float(stats.q_taken) == pytest.approx(3.0)
     assert float(stats.td_loss) == pytest.approx((3.0 - y) ** 2, rel=1e-6)
     assert float(stats.grad_norm) == pytest.approx(2 * abs(3.0 - y), rel=1e-6)
-    assert all(v.dim() == 0 and not v.requires_grad for v in stats)
+    assert all(v.dim() == 0 and not v.requires_grad for v in stats[:4]) and stats.by_index is None
 
 
 @pytest.mark.parametrize("smdp_discount", [False, True])
@@ -409,7 +409,8 @@ def test_the_fast_update_equals_a_straightforward_one(role):
     with torch.no_grad():  # a target that disagrees with the online net
         for p in ctrl.target.parameters():
             p.add_(torch.randn_like(p) * 0.05)
-    batch = ctrl.replay.sample_transitions(ctrl.cfg.batch_size, ctrl.seq_len, ctrl.build_input, ctrl.device)
+    batch = ctrl.replay.sample_transitions(ctrl.cfg.batch_size, ctrl.seq_len, ctrl.build_input, ctrl.device,
+                                           gamma=ctrl.cfg.gamma if ctrl.track_returns else None)
     online, target = copy.deepcopy(ctrl.online), copy.deepcopy(ctrl.target)
 
     q = _reference_q(online, batch.obs)

@@ -354,7 +354,8 @@ def test_sample_transitions_is_a_typed_batch_with_the_stored_values():
 
     b = replay.sample_transitions(2, 3, build_input, rng=_ScriptedRng([0, 0], [1, 3]))
     assert type(b).__name__ == "ReplaySamples" and b._fields == (
-        "obs", "action", "reward", "terminal", "mask", "next_invalid", "option_steps")
+        "obs", "action", "reward", "terminal", "mask", "next_invalid", "option_steps", "episode_end", "start",
+        "return_to_go")
     assert len(built) == 1
     obs = np.zeros((2, 4, 2), np.float32)
     obs[0, :3] = [[101, 110], [102, 120], [103, 130]]  # frames 1..3 + segment 0's 100
@@ -369,6 +370,8 @@ def test_sample_transitions_is_a_typed_batch_with_the_stored_values():
     assert b.mask.dtype == torch.bool and b.mask.tolist() == [[False, True, False], [True, True, False]]
     assert b.next_invalid.dtype == torch.int64 and b.next_invalid.tolist() == [[2, -1, 0], [0, 1, 0]]
     assert b.option_steps.dtype == torch.float32 and b.option_steps.tolist() == [[2, 1, 0], [3, 1, 0]]
+    assert b.episode_end.tolist() == [[False, False, False], [False, True, False]]  # step 4 ends the episode
+    assert b.start.tolist() == [1, 3] and b.return_to_go is None
 
     sub = EpisodeReplay(4, seed=0)
     sub.add(_typed_episode(meta=False))

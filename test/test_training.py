@@ -105,8 +105,9 @@ def test_every_algorithm_trains_and_writes_its_run_directory(algo, tmp_path):
 
 def test_each_controllers_losses_are_logged_every_few_updates(tmp_path):
     """Per controller, every ``log_every_updates`` updates: a losses.csv row of the means of
-    TD loss, Q of the taken actions, target and gradient norm; TensorBoard's
-    ``losses/<controller>/<stat>``; the latest TD loss and Q in train.csv's episode rows."""
+    TD loss, Q of the taken actions, target and gradient norm (the meta-controller's also by
+    option index, beside the return obtained); TensorBoard's ``losses/<controller>/<stat>``;
+    the latest TD loss and Q in train.csv's episode rows."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     from hdrqn_ros.training.metrics import read_csv, read_losses
@@ -114,10 +115,14 @@ def test_each_controllers_losses_are_logged_every_few_updates(tmp_path):
     trainer = Trainer(tiny(log_every_updates=4), tmp_path, progress=False, tensorboard=True)
     trainer.run()
     header = (tmp_path / "losses.csv").read_text().splitlines()[0]
-    assert header == "episode,env_steps,updates,controller,td_loss,q_taken,target,grad_norm"
+    by_index = [f"{stat}_opt{i}" for stat in ("q", "return") for i in range(4)]
+    assert header == ",".join(["episode,env_steps,updates,controller,td_loss,q_taken,target,grad_norm", *by_index])
     losses, train = read_losses(tmp_path / "losses.csv"), read_csv(tmp_path / "train.csv")
+    assert np.isnan(np.stack([losses["sub"][c] for c in by_index])).all()  # the meta-controller's only
+    first_options = np.stack([losses["meta"][c] for c in ("q_opt0", "return_opt0")])
+    assert np.isfinite(first_options).all() and (losses["meta"]["return_opt0"] >= 0).all()
     for ctrl in (trainer.agent.sub, trainer.agent.meta):
-        rows = losses[ctrl.name]
+        rows = {k: v for k, v in losses[ctrl.name].items() if k not in by_index}
         assert rows["updates"].tolist() == list(range(4, ctrl.updates + 1, 4)) and len(rows["updates"]) >= 3
         assert np.isfinite(np.stack(list(rows.values()))).all() and (rows["grad_norm"] > 0).all()
         assert (rows["td_loss"] > 0).all() and not np.array_equal(rows["q_taken"], rows["target"])
@@ -130,6 +135,7 @@ def test_each_controllers_losses_are_logged_every_few_updates(tmp_path):
     tags = EventAccumulator(str(tmp_path / "tb")).Reload().Tags()["scalars"]
     stats = ("td_loss", "q_taken", "target", "grad_norm")
     assert {f"losses/{c}/{stat}" for c in ("sub", "meta") for stat in stats} <= set(tags)
+    assert {"losses/meta/q_opt0", "losses/meta/return_opt0"} <= set(tags) and "losses/sub/q_opt0" not in tags
     assert "train/success" in tags and not any(tag.startswith("train/sub_") for tag in tags)
 
 

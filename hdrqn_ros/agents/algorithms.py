@@ -60,7 +60,7 @@ class Agent:
         if spec.hierarchical:
             self.meta = Controller("meta", make_network(cfg.algo, "meta", num_actions, num_subgoals),
                                    cfg.controller("meta"), _frames, device=cfg.device, seed=cfg.seed + 1,
-                                   smdp_discount=cfg.smdp_discount)
+                                   smdp_discount=cfg.smdp_discount, track_returns=True)
 
     @property
     def controllers(self) -> list[Controller]:

@@ -39,14 +39,22 @@ def meta_transition(option_extrinsic: float, terminated: bool, option_steps: int
     return option_extrinsic, option_steps, terminated, next_place
 
 
+INDEX_BUCKETS = 4
+"""Steps by index in their episode for :attr:`UpdateStats.by_index`: 0, 1, 2 and 3 or later."""
+
+
 class UpdateStats(NamedTuple):
-    """What one :meth:`Controller.update` saw, as detached 0-d tensors on the controller's
+    """What one :meth:`Controller.update` saw, as detached tensors on the controller's
     device (read them as floats only when needed: each read waits for the device)."""
 
     td_loss: torch.Tensor  # the loss minimised
     q_taken: torch.Tensor  # mean Q(s_t, a_t) of the online net over the loss steps
     target: torch.Tensor  # mean Double DQN target y_t over the loss steps
     grad_norm: torch.Tensor  # the gradients' total 2-norm before clipping
+    by_index: torch.Tensor | None = None
+    """(3, INDEX_BUCKETS) sums over the loss steps by their index in the episode (the
+    meta-controller's option index): [count, Q(s_t, a_t), return obtained from t]; only for
+    a controller made with ``track_returns``."""
 
 
 class Controller:
@@ -67,8 +75,10 @@ class Controller:
     """
 
     def __init__(self, name: str, net: nn.Module, cfg: ControllerConfig, build_input: InputBuilder,
-                 device: str | torch.device = "cpu", seed: int = 0, smdp_discount: bool = False):
+                 device: str | torch.device = "cpu", seed: int = 0, smdp_discount: bool = False,
+                 track_returns: bool = False):
         self.name = name
+        self.track_returns = track_returns
         self.cfg = cfg
         self.smdp_discount = smdp_discount
         self.device = torch.device(device)
@@ -78,8 +88,9 @@ class Controller:
         self.replay = EpisodeReplay(cfg.replay_episodes, capacity_bytes=cfg.replay_bytes, seed=seed)
         self.build_input = build_input
         self.recurrent = bool(getattr(net, "recurrent", False))
-        # a feed-forward network learns from single transitions (DQN); an LSTM from windows of n
-        self.seq_len = cfg.seq_len if self.recurrent else 1
+        # a feed-forward network learns from single transitions (DQN); an LSTM from windows of n,
+        # or from whole segments (None: episodes for the meta-controller, options for the sub)
+        self.seq_len = (None if cfg.sampling == "whole" else cfg.seq_len) if self.recurrent else 1
         self.updates = 0
         self._online_params = list(self.online.parameters())
         self._target_params = list(self.target.parameters())
@@ -100,11 +111,15 @@ class Controller:
     def update(self) -> UpdateStats:
         """Sample windows, take one Adam step on the Double DQN loss, soft-update the target.
 
-        Loss only on each window's ``mask`` steps (the last n/2). Returns what the update
-        saw (:class:`UpdateStats`). Raises :class:`TrainingDiverged` when the loss is not finite.
+        Loss only on each window's ``mask`` steps (windows: the last n/2; whole segments:
+        all). Returns what the update saw (:class:`UpdateStats`). Raises
+        :class:`TrainingDiverged` when the loss is not finite.
         """
-        batch = self.replay.sample_transitions(self.cfg.batch_size, self.seq_len, self.build_input, self.device,
-                                               history=self.cfg.window_history)
+        cfg = self.cfg
+        batch = self.replay.sample_transitions(cfg.batch_size, self.seq_len, self.build_input, self.device,
+                                               history=cfg.window_history,
+                                               gamma=cfg.gamma if self.track_returns else None,
+                                               smdp_discount=self.smdp_discount)
 
         # ALGO LOGIC: the Double DQN target on a window of n steps (thesis Algorithms 3, 4)
         #   y_t = r_t + d_t * (1 - terminal_t) * Q_target(s_{t+1}, argmax_a Q(s_{t+1}, a))
@@ -112,8 +127,13 @@ class Controller:
         # (eq. 3.5: k_t = option_steps, the option's length in primitive steps); r_t, k_t,
         # terminal_t and the invalid choice at s_{t+1} are what the replay stored for step t
         # (``meta_transition`` above and training/episodes.py); s_{t+1} = batch.obs[:, t + 1].
-        gamma = self.cfg.gamma
+        # With time_limit "terminal" an episode's last step is terminal even when the step
+        # limit, not the task, ended it.
+        gamma = cfg.gamma
         discount = gamma ** batch.option_steps if self.smdp_discount else gamma
+        terminal = batch.terminal
+        if cfg.time_limit == "terminal":
+            terminal = torch.maximum(terminal, batch.episode_end.float())
         q, _ = self.online(batch.obs)  # (B, n+1, A): Q(s_t, .) for every input of the window
         q_taken = q[:, :-1].gather(-1, batch.action.unsqueeze(-1)).squeeze(-1)  # Q(s_t, a_t)
         with torch.no_grad():
@@ -124,8 +144,8 @@ class Controller:
                 q_next = q_next.masked_fill(hit, float("-inf"))
             next_action = q_next.argmax(-1, keepdim=True)
             next_value = q_target[:, 1:].gather(-1, next_action).squeeze(-1)  # ... the target net values it
-            y = batch.reward + discount * (1 - batch.terminal) * next_value
-        per_step = (q_taken - y).pow(2) if self.cfg.loss == "mse" else \
+            y = batch.reward + discount * (1 - terminal) * next_value
+        per_step = (q_taken - y).pow(2) if cfg.loss == "mse" else \
             nn.functional.smooth_l1_loss(q_taken, y, reduction="none")
         loss_steps = batch.mask.sum().clamp(min=1)
         loss = (per_step * batch.mask).sum() / loss_steps
@@ -135,14 +155,24 @@ class Controller:
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         # without grad_clip an infinite bound: the norm is measured, the gradients stay as they are
-        max_norm = float("inf") if self.cfg.grad_clip is None else self.cfg.grad_clip
+        max_norm = float("inf") if cfg.grad_clip is None else cfg.grad_clip
         grad_norm = nn.utils.clip_grad_norm_(self._online_params, max_norm, foreach=True)
         self.optimizer.step()
         self.soft_update()
         self.updates += 1
         with torch.no_grad():
+            by_index = self._by_index(q_taken.detach(), batch) if self.track_returns else None
             return UpdateStats(td_loss=loss.detach(), q_taken=(q_taken * batch.mask).sum() / loss_steps,
-                               target=(y * batch.mask).sum() / loss_steps, grad_norm=grad_norm)
+                               target=(y * batch.mask).sum() / loss_steps, grad_norm=grad_norm, by_index=by_index)
+
+    def _by_index(self, q_taken: torch.Tensor, batch) -> torch.Tensor:
+        """:attr:`UpdateStats.by_index` of the loss steps: Q(s_t, a_t) (B, n) and the return
+        obtained, summed by the step's index in its episode."""
+        steps = batch.mask.shape[1]
+        index = (batch.start.unsqueeze(1) + torch.arange(steps, device=self.device)).clamp(max=INDEX_BUCKETS - 1)
+        mask = batch.mask
+        values = torch.stack([torch.ones_like(q_taken), q_taken, batch.return_to_go])[:, mask]  # (3, loss steps)
+        return torch.zeros(3, INDEX_BUCKETS, device=self.device).index_add_(1, index[mask], values)
 
     @torch.no_grad()
     def soft_update(self) -> None:

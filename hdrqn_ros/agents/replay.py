@@ -14,6 +14,11 @@ episode of two or more options). Cutting rather than shifting windows at a segme
 windows kept whole inside the segment, the last step of an option (where the subgoal
 reward is) would reach the loss ``n/2`` times less often than a middle step.
 
+With ``seq_len=None`` a window is instead the whole segment of the random step, from the
+segment's start, every step carrying the loss: the LSTM then sees exactly the states it
+acts from (acting unrolls each segment from a zero state), and every target is read at a
+position that the loss also trains (docs/training.md, "Whole sequences").
+
 Segments are options: the sub-controller's LSTM restarts at every option, so its windows
 must never cross an option boundary. Flat and meta-controller replays store one segment
 per episode (``segment_starts=[0]``).
@@ -167,7 +172,11 @@ class SequenceBatch:
       first steps and is right-padded with zeros (frames after its last next-input too).
     * ``loss_mask``: ``(B, n)`` bool: the last ``loss_len`` valid steps of each window.
     * ``episode_index``, ``start``: ``(B,)`` int: where each window came from (replay slot
-      at sampling time, and first step within the episode), for debugging and tests.
+      at sampling time, and first step within the episode).
+    * ``episode_end``: ``(B, n)`` bool: the step is its episode's last (terminal, or cut by
+      the time limit).
+    * ``return_to_go``: ``(B, n)`` float32 or None: the discounted return obtained from each
+      step to its episode's end (:meth:`EpisodeReplay.return_to_go`), when asked for.
     """
 
     frames: np.ndarray
@@ -177,6 +186,8 @@ class SequenceBatch:
     loss_mask: np.ndarray
     episode_index: np.ndarray
     start: np.ndarray
+    episode_end: np.ndarray
+    return_to_go: np.ndarray | None = None
 
     def samples(self, obs: np.ndarray, device: torch.device | str = "cpu") -> "ReplaySamples":
         """The window as the Double DQN target reads it: ``obs`` (the network input built
@@ -184,6 +195,7 @@ class SequenceBatch:
         (and ``next_invalid``, ``option_steps`` when stored) as tensors on ``device``."""
         fields = self.fields
         invalid, option_steps = fields.get("next_invalid"), fields.get("option_steps")
+        returns = self.return_to_go
         return ReplaySamples(
             obs=torch.as_tensor(obs, device=device),
             action=torch.as_tensor(fields["action"], device=device).long(),
@@ -192,6 +204,9 @@ class SequenceBatch:
             mask=torch.as_tensor(self.loss_mask, device=device),
             next_invalid=None if invalid is None else torch.as_tensor(invalid, device=device).long(),
             option_steps=None if option_steps is None else torch.as_tensor(option_steps, device=device).float(),
+            episode_end=torch.as_tensor(self.episode_end, device=device),
+            start=torch.as_tensor(self.start, device=device),
+            return_to_go=None if returns is None else torch.as_tensor(returns, device=device),
         )
 
 
@@ -211,6 +226,10 @@ class ReplaySamples(NamedTuple):
       meta-controller stands on), -1 for none; left out of the target's argmax.
     * ``option_steps``: float32 or None: the length k in primitive steps of the option that
       step t is (the meta-controller's SMDP discount gamma**k); 0 on padding steps.
+    * ``episode_end``: bool, step t is its episode's last.
+    * ``start``: ``(B,)`` int64, each window's first step within its episode (step t of
+      the window is step ``start + t`` of the episode: for the meta-controller, its option index).
+    * ``return_to_go``: float32 or None: the discounted return obtained from step t on.
     """
 
     obs: torch.Tensor
@@ -220,6 +239,25 @@ class ReplaySamples(NamedTuple):
     mask: torch.Tensor
     next_invalid: torch.Tensor | None
     option_steps: torch.Tensor | None
+    episode_end: torch.Tensor
+    start: torch.Tensor
+    return_to_go: torch.Tensor | None
+
+
+class _Window(NamedTuple):
+    """One sampled window: replay slot, segment, first step, steps, first loss step (relative)."""
+
+    episode: int
+    segment: int
+    start: int
+    length: int
+    loss_from: int
+
+
+def _segment_bounds(ep: Episode, segment: int) -> tuple[int, int]:
+    """(first step, end step) of ``ep``'s ``segment``."""
+    end = int(ep.segment_starts[segment + 1]) if segment + 1 < ep.num_segments else ep.num_steps
+    return int(ep.segment_starts[segment]), end
 
 
 class EpisodeReplay:
@@ -303,78 +341,121 @@ class EpisodeReplay:
     def sample(
         self,
         batch_size: int,
-        seq_len: int,
+        seq_len: int | None,
         rng: np.random.Generator | None = None,
         loss_len: int | None = None,
         history: bool = False,
+        gamma: float | None = None,
+        smdp_discount: bool = False,
     ) -> SequenceBatch:
         """Sample ``batch_size`` windows of up to ``seq_len`` steps (see module docstring).
 
+        ``seq_len`` None: each window is the whole segment of a random step, from the
+        segment's start (the state acting starts from), every step carrying the loss; the
+        batch is as long as its longest window.
         ``loss_len`` (default ``max(1, seq_len // 2)``): how many of the last valid steps
         of each window carry the loss (all of them when the window is shorter).
         ``history``: draw the first loss step uniformly instead and begin the window up to
         ``seq_len - loss_len`` steps before it, inside its segment, so that every loss step
         has that much history where the segment has it (a window that then begins at its
         segment's start still puts the loss on all its steps).
+        ``gamma``: also fill ``return_to_go`` (:meth:`return_to_go`, with ``smdp_discount``).
         ``rng`` defaults to the replay's own generator (seeded by ``seed``).
         """
         if len(self._episodes) == 0:
             raise ValueError("cannot sample from an empty replay")
         if int(batch_size) < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-        if int(seq_len) < 1:
-            raise ValueError(f"seq_len must be >= 1, got {seq_len}")
-        batch_size, n = int(batch_size), int(seq_len)
+        if seq_len is not None and int(seq_len) < 1:
+            raise ValueError(f"seq_len must be >= 1 or None (whole segments), got {seq_len}")
+        n = None if seq_len is None else int(seq_len)
         if loss_len is None:
-            loss_len = max(1, n // 2)
+            loss_len = max(1, (n or 1) // 2)
         if int(loss_len) < 1:
             raise ValueError(f"loss_len must be >= 1, got {loss_len}")
         rng = self._rng if rng is None else rng
 
-        first = self._episodes[0]
-        frames = np.zeros((batch_size, n + 1) + first.frames.shape[1:], first.frames.dtype)
-        fields = {
-            k: np.zeros((batch_size, n) + a.shape[1:], a.dtype) for k, a in first.fields.items()
-        }
-        seg_data = {
-            k: np.zeros((batch_size,) + a.shape[1:], a.dtype)
-            for k, a in first.segment_data.items()
-        }
-        valid = np.zeros((batch_size, n), bool)
-        loss_mask = np.zeros((batch_size, n), bool)
-        ep_idx = rng.integers(len(self._episodes), size=batch_size)
-        starts = np.zeros(batch_size, np.int64)
-
-        for row, episode_index in enumerate(ep_idx):
+        picks = []
+        for episode_index in rng.integers(len(self._episodes), size=int(batch_size)):
             ep = self._episodes[int(episode_index)]
-            t_total = ep.num_steps
-            # The window begins at a uniformly random step of the episode (thesis 3.4) and
-            # is cut at the end of that step's segment, so every step, the last one of an
-            # option included, reaches the loss equally often.
-            start = int(rng.integers(t_total))
+            # A uniformly random step of the episode (thesis 3.4); its window is cut at the end
+            # of that step's segment, so every step, an option's last included, reaches the
+            # loss equally often.
+            start = int(rng.integers(ep.num_steps))
             segment = int(np.searchsorted(ep.segment_starts, start, side="right")) - 1
+            seg_start, seg_end = _segment_bounds(ep, segment)
+            if n is None:
+                picks.append(_Window(int(episode_index), segment, seg_start, seg_end - seg_start, 0))
+                continue
             first_loss = start
             if history:  # ``start`` is the first loss step: begin up to n - loss_len steps earlier
-                start = max(int(ep.segment_starts[segment]), start - (n - int(loss_len)))
-            seg_end = int(ep.segment_starts[segment + 1]) if segment + 1 < ep.num_segments else t_total
+                start = max(seg_start, start - (n - int(loss_len)))
             length = min(n, seg_end - start)
-            from_segment_start = start == int(ep.segment_starts[segment])
-            starts[row] = start
+            # A window that begins where its segment begins starts from the true (zero) LSTM
+            # state, so all its steps carry the loss; otherwise only the last loss_len do.
+            if start == seg_start:
+                loss_from = 0
+            else:
+                loss_from = first_loss - start if history else max(0, length - int(loss_len))
+            picks.append(_Window(int(episode_index), segment, start, length, loss_from))
+        return self._gather(picks, n, gamma, smdp_discount)
+
+    def whole_segments(self, episodes: list[int], gamma: float | None = None,
+                       smdp_discount: bool = False) -> SequenceBatch:
+        """Every segment of the episodes at ``episodes`` (replay slots), whole, from its start,
+        one row each in order: the windows of ``sample(..., seq_len=None)``, chosen."""
+        picks = []
+        for index in episodes:
+            ep = self._episodes[int(index)]
+            for segment in range(ep.num_segments):
+                seg_start, seg_end = _segment_bounds(ep, segment)
+                picks.append(_Window(int(index), segment, seg_start, seg_end - seg_start, 0))
+        return self._gather(picks, None, gamma, smdp_discount)
+
+    @staticmethod
+    def return_to_go(episode: Episode, gamma: float, smdp_discount: bool = False) -> np.ndarray:
+        """(T,) float64: the discounted return from each step to the episode's end,
+        G_t = r_t + d_t G_{t+1}, with d_t = gamma, or gamma ** option_steps[t] with
+        ``smdp_discount``; what was obtained, with nothing bootstrapped after the last step."""
+        rewards = episode.fields["reward"].astype(np.float64)
+        discounts = np.full(len(rewards), float(gamma))
+        if smdp_discount and "option_steps" in episode.fields:
+            discounts = float(gamma) ** episode.fields["option_steps"].astype(np.float64)
+        out = np.empty_like(rewards)
+        running = 0.0
+        for t in range(len(rewards) - 1, -1, -1):
+            running = rewards[t] + discounts[t] * running
+            out[t] = running
+        return out
+
+    def _gather(self, picks: list["_Window"], n: int | None, gamma: float | None,
+                smdp_discount: bool) -> SequenceBatch:
+        """The :class:`SequenceBatch` of ``picks``, ``n`` steps long (None: the longest pick)."""
+        n = max(p.length for p in picks) if n is None else n
+        batch_size = len(picks)
+        first = self._episodes[0]
+        frames = np.zeros((batch_size, n + 1) + first.frames.shape[1:], first.frames.dtype)
+        fields = {k: np.zeros((batch_size, n) + a.shape[1:], a.dtype) for k, a in first.fields.items()}
+        seg_data = {k: np.zeros((batch_size,) + a.shape[1:], a.dtype) for k, a in first.segment_data.items()}
+        valid = np.zeros((batch_size, n), bool)
+        loss_mask = np.zeros((batch_size, n), bool)
+        episode_end = np.zeros((batch_size, n), bool)
+        returns = None if gamma is None else np.zeros((batch_size, n), np.float32)
+        for row, (episode_index, segment, start, length, loss_from) in enumerate(picks):
+            ep = self._episodes[episode_index]
             frames[row, : length + 1] = ep.frames[start : start + length + 1]
             for name, a in ep.fields.items():
                 fields[name][row, :length] = a[start : start + length]
             for name, a in ep.segment_data.items():
                 seg_data[name][row] = a[segment]
             valid[row, :length] = True
-            # A window that begins where its segment begins starts from the true (zero) LSTM
-            # state, so all its steps carry the loss; otherwise only the last loss_len do.
-            if from_segment_start:
-                loss_from = 0
-            else:
-                loss_from = first_loss - start if history else max(0, length - int(loss_len))
             loss_mask[row, loss_from:length] = True
-
-        return SequenceBatch(frames, fields, seg_data, valid, loss_mask, ep_idx, starts)
+            episode_end[row, length - 1] = start + length == ep.num_steps
+            if returns is not None:
+                returns[row, :length] = self.return_to_go(ep, gamma, smdp_discount)[start : start + length]
+        return SequenceBatch(frames, fields, seg_data, valid, loss_mask,
+                             np.array([p.episode for p in picks], np.int64),
+                             np.array([p.start for p in picks], np.int64), episode_end, returns)
 
     def sample_transitions(
         self,
@@ -385,9 +466,12 @@ class EpisodeReplay:
         rng: np.random.Generator | None = None,
         loss_len: int | None = None,
         history: bool = False,
+        gamma: float | None = None,
+        smdp_discount: bool = False,
     ) -> ReplaySamples:
         """:meth:`sample` windows, as typed :class:`ReplaySamples` on ``device``; the network
         input ``obs`` is ``build_input(window)`` (e.g. each frame stacked with its option's
         subgoal image)."""
-        batch = self.sample(batch_size, seq_len, rng=rng, loss_len=loss_len, history=history)
+        batch = self.sample(batch_size, seq_len, rng=rng, loss_len=loss_len, history=history, gamma=gamma,
+                            smdp_discount=smdp_discount)
         return batch.samples(build_input(batch), device)

@@ -51,6 +51,7 @@ class DomainBatch(Protocol):
     num_subgoals: int
     subgoal_names: tuple[str, ...]  # one per subgoal index
     subgoal_neighbours: tuple[tuple[int, ...], ...]  # per subgoal: those reachable from it directly
+    return_bound: float  # the largest extrinsic return one episode can give (the meta-controller's)
 
     def reset(self, seed: int | None = None) -> np.ndarray: ...
 

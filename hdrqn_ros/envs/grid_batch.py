@@ -56,6 +56,7 @@ class GridWorldBatch:
         self.layout = layout
         self.n_goals = G = int(n_goals)
         self.num_subgoals = G
+        self.return_bound = float(G)  # +1 per goal, each collected once
         self.subgoal_names = GOAL_NAMES[:G]
         # every goal can be walked to from every other one
         self.subgoal_neighbours = tuple(tuple(h for h in range(G) if h != g) for g in range(G))

@@ -183,6 +183,7 @@ class MontezumaBatch:
     subgoal_names = SUBGOAL_NAMES
     subgoal_neighbours = SUBGOAL_NEIGHBOURS
     action_names = ACTION_NAMES
+    return_bound = 3.0  # eq. 4.5: the key and the room's two doors, +1 each
 
     def __init__(
         self,

@@ -114,7 +114,7 @@ class LearnerNode(Node):
         cfg = train_config(params)
         run_dir = Path(params["run_dir"])
         resume = params["resume"] and (run_dir / "checkpoints" / "last.pt").exists()
-        self.learner = Learner(cfg, run_dir, resume=resume, progress=False)
+        self.learner = Learner(cfg, run_dir, resume=resume, progress=False, warn=self.get_logger().warning)
         if resume:
             self.get_logger().info(f"resumed from {run_dir} at episode {self.learner.episodes}")
         self.episodes: queue.Queue = queue.Queue(EPISODE_QUEUE)

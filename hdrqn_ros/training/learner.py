@@ -5,6 +5,7 @@ losses among them)."""
 from __future__ import annotations
 
 import json
+import sys
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
@@ -118,7 +119,7 @@ class Learner:
     """TensorBoard's x axis for evaluations."""
 
     def __init__(self, cfg: TrainConfig, run_dir: str | Path, resume: bool = False, progress: bool = True,
-                 tensorboard: bool = True):
+                 tensorboard: bool = True, warn: Callable[[str], None] | None = None):
         self.cfg = cfg
         self.run_dir = Path(run_dir)
         self.checkpoint_path = self.run_dir / "checkpoints" / "last.pt"
@@ -129,6 +130,9 @@ class Learner:
         probe = make_batch(cfg.env, 1, **cfg.env_kwargs)
         self.agent = build_agent(cfg, probe)
         self.subgoal_names, self.subgoal_neighbours = probe.subgoal_names, probe.subgoal_neighbours
+        self.return_bound: float | None = getattr(probe, "return_bound", None)
+        self.bound_exceeded: dict | None = None  # the first losses.csv row whose meta mean Q passed return_bound
+        self.warn = warn or (lambda text: print(f"warning: {text}", file=sys.stderr, flush=True))
         self.episodes = 0
         self.env_steps = 0
         self.meta_begin: int | None = None  # env step at which the meta-controller starts learning
@@ -315,6 +319,21 @@ class Learner:
         self.log.losses({"episode": self.episodes, "env_steps": self.env_steps, "updates": ctrl.updates,
                          "controller": ctrl.name, **means})
         self.latest_losses.update({f"{ctrl.name}_{stat}": means[stat] for stat in TRAIN_LOSS_STATS})
+        if ctrl.name == "meta":
+            self._check_value_bound(means["q_taken"])
+
+    def _check_value_bound(self, mean_q: float) -> None:
+        """Warn once when the meta-controller's mean Q(s_t, a_t) over a ``losses.csv`` row
+        exceeds the largest return an episode can give (the domain's ``return_bound``): its
+        values have diverged; ``summary.json`` keeps where."""
+        if self.return_bound is None or self.bound_exceeded is not None or not mean_q > self.return_bound:
+            return
+        self.bound_exceeded = {"episode": self.episodes, "updates": self.agent.meta.updates, "mean_q": mean_q,
+                               "return_bound": self.return_bound}
+        self.warn(f"the meta-controller's mean Q is {mean_q:.4g} at episode {self.episodes} "
+                  f"(update {self.agent.meta.updates}), above {self.return_bound:g}, the largest return an episode "
+                  f"of {self.cfg.env} can give: its values are diverging (losses.csv: q_taken, q_opt*; "
+                  f"docs/training.md, 'Value bound')")
 
     def _has_data(self, ctrl, offline: bool) -> bool:
         return len(ctrl.replay) >= ctrl.cfg.batch_size and (offline or self.env_steps >= self.cfg.learning_starts)
@@ -368,7 +387,7 @@ class Learner:
                    "env_steps_per_s": round((self.env_steps - self.start_steps) / max(wall, 1e-9), 1),
                    "updates": self.agent.sub.updates,
                    "train_success_last100": float(np.mean([r.success for r in self.recent])) if self.recent else None,
-                   **extra, "final_eval": final_eval}
+                   "meta_q_above_bound": self.bound_exceeded, **extra, "final_eval": final_eval}
         (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
         return summary
 

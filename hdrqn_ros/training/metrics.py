@@ -19,7 +19,10 @@ OPTION_COLUMNS = ["episode", "start", "subgoal", "steps", "reached"]
 UPDATE_STATS = ["td_loss", "q_taken", "target", "grad_norm"]
 """A controller's means over ``log_every_updates`` updates: TD loss, Q(s_t, a_t) of the taken
 actions and target y_t on the loss steps, gradient norm before clipping."""
-LOSS_COLUMNS = ["episode", "env_steps", "updates", "controller", *UPDATE_STATS]
+OPTION_INDEX_STATS = [f"{stat}_opt{i}" for stat in ("q", "return") for i in range(4)]
+"""The meta-controller's mean Q(s_t, a_t) and the discounted return obtained from t, by its
+option index t in the episode (``opt3``: the fourth option or later); empty for the sub."""
+LOSS_COLUMNS = ["episode", "env_steps", "updates", "controller", *UPDATE_STATS, *OPTION_INDEX_STATS]
 TRAIN_LOSS_STATS = ["td_loss", "q_taken"]
 """The latest of these per controller also go into ``train.csv``, as ``<controller>_<stat>``."""
 NOT_SCALARS = {"episode", "env_steps", "wall_s", "updates", "controller"}
@@ -89,7 +92,8 @@ class MetricsLog:
     def losses(self, row: dict) -> None:
         """A ``losses.csv`` row of one controller (:data:`LOSS_COLUMNS`); TensorBoard:
         ``losses/<controller>/<stat>``, x axis the controller's updates."""
-        scalars = {f"losses/{row['controller']}/{stat}": row[stat] for stat in UPDATE_STATS}
+        scalars = {f"losses/{row['controller']}/{stat}": row[stat] for stat in UPDATE_STATS + OPTION_INDEX_STATS
+                   if stat in row and row[stat] == row[stat]}  # NaN: no loss step had that option index
         self._write("losses", row, scalars, int(row["updates"]))
 
     def subgoals(self, episode: int, visits: dict[int, int], options) -> None:

@@ -176,7 +176,7 @@ class SequenceBatch:
     * ``episode_end``: ``(B, n)`` bool: the step is its episode's last (terminal, or cut by
       the time limit).
     * ``return_to_go``: ``(B, n)`` float32 or None: the discounted return obtained from each
-      step to its episode's end (:meth:`EpisodeReplay.return_to_go`), when asked for.
+      step to its segment's end (:meth:`EpisodeReplay.return_to_go`), when asked for.
     """
 
     frames: np.ndarray
@@ -229,7 +229,8 @@ class ReplaySamples(NamedTuple):
     * ``episode_end``: bool, step t is its episode's last.
     * ``start``: ``(B,)`` int64, each window's first step within its episode (step t of
       the window is step ``start + t`` of the episode: for the meta-controller, its option index).
-    * ``return_to_go``: float32 or None: the discounted return obtained from step t on.
+    * ``return_to_go``: float32 or None: the discounted return obtained from step t to
+      the end of its segment.
     """
 
     obs: torch.Tensor
@@ -414,13 +415,16 @@ class EpisodeReplay:
 
     @staticmethod
     def return_to_go(episode: Episode, gamma: float, smdp_discount: bool = False) -> np.ndarray:
-        """(T,) float64: the discounted return from each step to the episode's end,
-        G_t = r_t + d_t G_{t+1}, with d_t = gamma, or gamma ** option_steps[t] with
-        ``smdp_discount``; what was obtained, with nothing bootstrapped after the last step."""
+        """(T,) float64: the discounted return obtained from each step to the end of its
+        segment (an episode of options, an option), G_t = r_t + d_t (1 - terminal_t) G_{t+1},
+        with d_t = gamma, or gamma ** option_steps[t] with ``smdp_discount``; nothing is
+        bootstrapped after a segment's last step."""
         rewards = episode.fields["reward"].astype(np.float64)
         discounts = np.full(len(rewards), float(gamma))
         if smdp_discount and "option_steps" in episode.fields:
             discounts = float(gamma) ** episode.fields["option_steps"].astype(np.float64)
+        discounts[episode.fields["terminal"].astype(bool)] = 0.0
+        discounts[episode.segment_starts[1:] - 1] = 0.0
         out = np.empty_like(rewards)
         running = 0.0
         for t in range(len(rewards) - 1, -1, -1):

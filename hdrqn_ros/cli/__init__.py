@@ -4,7 +4,7 @@ Exit codes: 0 success, 1 a run failed (e.g. diverged), 2 misuse (bad arguments, 
 checkpoint or file), 130 interrupted.
 
 One module per command group: :mod:`~hdrqn_ros.cli.train` (train, eval),
-:mod:`~hdrqn_ros.cli.graph` (up), :mod:`~hdrqn_ros.cli.experiment` (experiment, plot,
+:mod:`~hdrqn_ros.cli.values` (values), :mod:`~hdrqn_ros.cli.graph` (up), :mod:`~hdrqn_ros.cli.experiment` (experiment, plot,
 envs), :mod:`~hdrqn_ros.cli.bag` (bag info, repair, play), :mod:`~hdrqn_ros.cli.export`
 (export); this module wires them into
 one parser and runs a command with the exit codes above.
@@ -25,12 +25,14 @@ from hdrqn_ros.cli.export import add_export, cmd_export
 from hdrqn_ros.cli.graph import MAX_GROUPS, add_up, cmd_up
 from hdrqn_ros.cli.robot import add_robot, cmd_robot
 from hdrqn_ros.cli.train import add_eval, add_train, cmd_eval, cmd_train
+from hdrqn_ros.cli.values import add_values, cmd_values
 
 EPILOG = """examples:
   hdrqn train --algo hdrqn-v2 --env hdrqn/GridWorld-2Goals-v0 --episodes 2000 --out runs/v2
   hdrqn train --config config/exp3_gridworld_2goals.yaml --algo hdqn --seed 1 --out runs/hdqn-s1
   hdrqn up --episodes 300 --out runs/graph     # the same training over the ROS 2 node graph
   hdrqn eval --checkpoint runs/v2/checkpoints/last.pt --episodes 200
+  hdrqn values runs/v2                         # Q where it acts vs. zero-state windows, vs. returns
   hdrqn export --checkpoint runs/v2/checkpoints/last.pt --out policy/   # ONNX, acting without torch
   hdrqn plot runs/v2 runs/hdqn-s1 --out curves.png
   hdrqn experiment exp3-gridworld-2goals --seeds 0 1 2 --episodes 5000   # a thesis experiment
@@ -47,13 +49,14 @@ def build_parser() -> argparse.ArgumentParser:
         description="Hierarchical deep recurrent Q-learning (hDRQN) on partially observable hierarchical tasks.")
     parser.add_argument("--version", action="version", version=f"hdrqn_ros {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for add in (add_train, add_up, add_eval, add_robot, add_export, add_experiment, add_plot, add_bag, add_envs):
+    for add in (add_train, add_up, add_eval, add_values, add_robot, add_export, add_experiment, add_plot, add_bag,
+                add_envs):
         add(sub)
     return parser
 
 
 COMMANDS = {"train": cmd_train, "up": cmd_up, "eval": cmd_eval, "export": cmd_export, "experiment": cmd_experiment,
-            "plot": cmd_plot, "bag": cmd_bag, "envs": cmd_envs, "robot": cmd_robot}
+            "plot": cmd_plot, "bag": cmd_bag, "envs": cmd_envs, "robot": cmd_robot, "values": cmd_values}
 
 
 def _interrupt(signum, frame):

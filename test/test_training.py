@@ -187,9 +187,16 @@ def test_curves_show_each_controllers_losses_when_the_run_has_them(tmp_path):
                                     "2,100,4,sub,0.5,0.1,0.2,3\n3,110,8,sub,0.4,0.2,0.3,2\n"
                                     "3,120,4,meta,0.05,0.7,0.8,1\n4,150,12,sub,0.3,0.3,0.3,1\n")
     with_losses = imread(plot_runs([run], tmp_path / "with.png", window=2)).shape[0]
+    by_index = ",".join(f"{stat}_opt{i}" for stat in ("q", "return") for i in range(4))
+    (run / "losses.csv").write_text(f"episode,env_steps,updates,controller,td_loss,q_taken,target,grad_norm,{by_index}\n"
+                                    "2,100,4,sub,0.5,0.1,0.2,3,,,,,,,,\n"
+                                    "3,120,4,meta,0.05,0.7,0.8,1,0.9,0.5,0.2,nan,0.8,0.4,0.1,nan\n"
+                                    "4,150,8,meta,0.05,0.7,0.8,1,0.9,0.5,0.2,0.1,0.8,0.4,0.1,0.0\n")
+    with_values = imread(plot_runs([run], tmp_path / "values.png", window=2)).shape[0]
     (run / "losses.csv").unlink()
     without = imread(plot_runs([run], tmp_path / "without.png", window=2)).shape[0]
     assert with_losses == 3 * without // 2  # three rows of panels instead of two
+    assert with_values == 2 * without  # and a fourth: the meta-controller's Q by option index
 
 
 def test_resume_continues_counters_and_csv(tmp_path):

@@ -1,7 +1,8 @@
 """Learning curves like thesis figures 4.6-4.11: reward, steps, extrinsic and intrinsic
 reward and success ratio per episode, as a moving average, and (runs with ``losses.csv``)
-each controller's TD loss, mean Q and gradient norm; runs sharing a label (seeds) are drawn
-as their mean with a min-max band."""
+each controller's TD loss, mean Q and gradient norm, and the meta-controller's mean Q by
+option index beside the return obtained and the domain's return bound; runs sharing a
+label (seeds) are drawn as their mean with a min-max band."""
 from __future__ import annotations
 
 from collections import defaultdict
@@ -18,6 +19,11 @@ LOSS_PANELS = [("td_loss", "TD loss"), ("q_taken", "mean Q of the taken actions"
                ("grad_norm", "gradient norm before clipping")]
 CONTROLLER_LINES = {"sub": "-", "meta": "--"}
 """Line style of each controller in the loss panels."""
+OPTION_LINES = ("-", "--", "-.", ":")
+"""Line style of option index 0, 1, 2 and 3+ in the meta-controller's value panels."""
+VALUE_PANELS = [("q", "meta: mean Q by option index (-: 0, --: 1, -.: 2, :: 3+)"),
+                ("return", "meta: discounted return obtained by option index"),
+                ("over", "meta: Q - return obtained by option index")]
 
 
 def moving_average(x: np.ndarray, window: int) -> np.ndarray:
@@ -72,7 +78,9 @@ def plot_runs(runs: list[Path], out: Path, window: int = 200, labels: dict[str, 
         if run_losses := read_losses(run / "losses.csv"):
             losses[label].append(run_losses)
 
-    rows = 3 if losses else 2
+    values = {label: [run["meta"] for run in runs if "q_opt0" in run.get("meta", {})] for label, runs in losses.items()}
+    values = {label: tables for label, tables in values.items() if tables}
+    rows = 2 + bool(losses) + bool(values)
     fig, axes = plt.subplots(rows, 3, figsize=(15, 4 * rows))
     for ax, (key, panel) in zip(axes.flat, PANELS):
         for i, (label, tables) in enumerate(groups.items()):
@@ -97,6 +105,8 @@ def plot_runs(runs: list[Path], out: Path, window: int = 200, labels: dict[str, 
     axes.flat[0].legend(loc="best", fontsize=8)
     if losses:
         _draw_losses(axes[2], losses, list(groups))
+    if values:
+        _draw_values(axes[3], values, list(groups), _return_bound(runs[0]))
     fig.suptitle((f"{title}\n" if title else "") + f"moving average over {window} episodes"
                  + ("; losses: means of blocks of updates" if losses else "") + "; band: min-max over runs")
     fig.tight_layout()
@@ -125,6 +135,43 @@ def _draw_losses(axes, losses: dict[str, list[dict]], labels: list[str]) -> None
         ax.grid(alpha=0.3)
     axes[0].set_yscale("log")
     axes[0].legend(loc="best", fontsize=8)
+
+
+def _return_bound(run: Path) -> float | None:
+    """The largest return an episode of ``run``'s domain can give (None when unknown)."""
+    cfg = run / "config.yaml"
+    if not cfg.exists():
+        return None
+    from hdrqn_ros.envs.registration import make_batch
+
+    data = yaml.safe_load(cfg.read_text()) or {}
+    try:
+        return getattr(make_batch(data["env"], 1, **data.get("env_kwargs", {})), "return_bound", None)
+    except (KeyError, TypeError, ValueError, ImportError):
+        return None
+
+
+def _draw_values(axes, values: dict[str, list[dict]], labels: list[str], bound: float | None) -> None:
+    """The meta-controller's mean Q(s_t, a_t) and discounted return obtained by option index
+    t (``losses.csv``'s ``q_opt<t>``, ``return_opt<t>``) and their difference, per label (its
+    colour), against env steps; the return bound as a grey line."""
+    for ax, (key, panel) in zip(axes, VALUE_PANELS):
+        for label, tables in values.items():
+            n = min(len(t["env_steps"]) for t in tables)
+            for index, line in enumerate(OPTION_LINES):
+                q, ret = (np.stack([t[f"{stat}_opt{index}"][:n] for t in tables]) for stat in ("q", "return"))
+                curves = {"q": q, "return": ret, "over": q - ret}[key]
+                if np.isnan(curves).all():
+                    continue
+                draw_mean_band(ax, tables[0]["env_steps"][:n], curves, f"C{labels.index(label)}",
+                               f"{label} option {index}{'+' if index == len(OPTION_LINES) - 1 else ''}", line)
+        if bound is not None and key != "over":
+            ax.axhline(bound, color="grey", lw=1)
+            ax.annotate(" return bound", (0.0, bound), xycoords=("axes fraction", "data"), fontsize=8, color="grey")
+        ax.set_title(panel)
+        ax.set_xlabel("env steps")
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="best", fontsize=7)
 
 
 def _figure(ncols: int = 1, width: float = 8.0):

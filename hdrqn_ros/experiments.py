@@ -127,9 +127,32 @@ def _exp4() -> Experiment:
          "fig4.13b": "steps at each subgoal per episode (phase 2)"})
 
 
+META_TRAINING_CANDIDATES = (
+    ("windows", ("meta.sampling=windows", "meta.time_limit=bootstrap")),
+    ("whole", ("meta.sampling=whole", "meta.time_limit=bootstrap")),
+    ("whole-tlterm", ("meta.sampling=whole", "meta.time_limit=terminal")),
+    ("whole-lr1e-4", ("meta.sampling=whole", "meta.time_limit=bootstrap", "meta.lr=0.0001")),
+    ("whole-smdp", ("meta.sampling=whole", "meta.time_limit=bootstrap", "smdp_discount=true")),
+)
+"""How hDRQNv2's meta-controller learns, the candidates screened on three goals (label, --set items):
+the thesis's zero-state windows, whole episodes of options, and whole episodes with the time
+limit terminal, Table 4.7's learning rate or the SMDP discount."""
+
+
+def _meta_screen() -> Experiment:
+    return Experiment(
+        "meta-training-screen", "hDRQNv2's meta-controller: zero-state windows against whole episodes "
+        "(three goals, gridworld, 5x5 view)",
+        "Trained on whole episodes of options, hDRQNv2 learns the three-goal order on every seed and its meta "
+        "Q-values stay within the return bound; on zero-state windows it does not.",
+        "exp3_gridworld_3goals.yaml",
+        tuple((label, ("screen",), "hdrqn-v2", sets, None) for label, sets in META_TRAINING_CANDIDATES),
+        {"screen": "hDRQNv2, three goals: how the meta-controller learns"})
+
+
 EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in (
     _exp1(), _exp2(), _exp3("gridworld", 2), _exp3("gridworld", 3), _exp3("fourrooms", 2),
-    _exp3("fourrooms", 3), _exp4())}
+    _exp3("fourrooms", 3), _exp4(), _meta_screen())}
 
 
 def run_done(run_dir: Path, episodes: int | None) -> bool:

@@ -84,6 +84,9 @@ def _run(args) -> int:
 
     try:
         return COMMANDS[args.command](args)
+    except BrokenPipeError:  # e.g. `hdrqn experiment NAME --dry-run | head`, `hdrqn values RUN | head`
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except (UsageError, ConfigError, CheckpointError, BagError, ValueError, OSError) as exc:
         if os.environ.get("HDRQN_DEBUG"):
             raise
@@ -95,6 +98,3 @@ def _run(args) -> int:
     except KeyboardInterrupt:
         print(f"hdrqn {args.command}: interrupted", file=sys.stderr)
         return 130
-    except BrokenPipeError:  # e.g. `hdrqn experiment NAME --dry-run | head`
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return 0

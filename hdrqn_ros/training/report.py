@@ -2,8 +2,10 @@
 
 The table has one row per setting (label): its seeds, the final greedy ordered success
 (mean, standard deviation, min-max and each seed), the mean of the last three greedy
-evaluations, the training success of the last 500 episodes, greedy steps, and the budget
-(episodes, env steps, wall-clock per run).
+evaluations, the training success of the last 500 episodes, greedy steps, the largest mean Q
+of the meta-controller over its ``losses.csv`` rows (hierarchical agents; the largest return
+an episode can give bounds it, docs/training.md "Value bound"), and the budget (episodes,
+env steps, wall-clock per run).
 """
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrqn_ros.training.metrics import read_csv
+from hdrqn_ros.training.metrics import read_csv, read_losses
 from hdrqn_ros.training.plots import plot_runs, plot_subgoal_visits, plot_success_ratio
 from hdrqn_ros.training.subgoals import option_table_markdown
 
@@ -46,6 +48,9 @@ def _run_row(run_dir: Path) -> dict | None:
     row = {"episodes": int(train["episode"][-1]), "env_steps": int(train["env_steps"][-1]),
            "wall_min": training_seconds(train["wall_s"]) / 60, "finished": bool(summary),
            "train_success_last500": float(train["success"][-500:].mean())}
+    meta = read_losses(run_dir / "losses.csv").get("meta")
+    if meta is not None and len(meta["q_taken"]):
+        row["meta_q_max"] = float(np.nanmax(meta["q_taken"]))
     if ev:
         row["final_success"] = float(final.get("success", ev["success"][-1]))
         row["final_steps"] = float(final.get("steps", ev["steps"][-1]))
@@ -86,6 +91,7 @@ def experiment_rows(exp_dir: Path) -> list[dict]:
             if finals else None,
             "train_last500": float(np.mean([r["train_success_last500"] for _, r in runs])) if runs else None,
             "steps": float(np.mean([r["final_steps"] for _, r in runs if "final_steps" in r])) if finals else None,
+            "meta_q_max": [r["meta_q_max"] for _, r in runs if "meta_q_max" in r],
             "episodes": min((r["episodes"] for _, r in runs), default=0),
             "env_steps": int(np.mean([r["env_steps"] for _, r in runs])) if runs else 0,
             "wall_min": float(np.mean([r["wall_min"] for _, r in runs])) if runs else 0.0})
@@ -100,15 +106,16 @@ def markdown_table(rows: list[dict]) -> str:
     """The rows as a Markdown table (success figures are greedy, ordered, over 100 held-out episodes;
     sd is the sample standard deviation over the seeds, n - 1 in the denominator)."""
     lines = ["| setting | seeds (finished) | final greedy success: mean ± sd [min, max] | per seed | "
-             "last 3 evals | training success (last 500) | greedy steps | episodes / env steps per run | "
-             "wall-clock per run (min) |", "|---|---|---|---|---|---|---|---|---|"]
+             "last 3 evals | training success (last 500) | greedy steps | largest meta mean Q per seed | "
+             "episodes / env steps per run | wall-clock per run (min) |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         finals = r["final_success"]
         spread = (f"**{r['final_mean']:.2f}** ± {r['final_std']:.2f} [{min(finals):.2f}, {max(finals):.2f}]"
                   if finals else "-")
         lines.append(f"| {r['label']} | {len(r['seeds'])} ({r['finished']}) | {spread} | "
                      f"{', '.join(f'{x:.2f}' for x in finals) or '-'} | {_fmt(r['last3_mean'])} | "
-                     f"{_fmt(r['train_last500'])} | {_fmt(r['steps'], 1)} | {r['episodes']} / {r['env_steps']} | "
+                     f"{_fmt(r['train_last500'])} | {_fmt(r['steps'], 1)} | "
+                     f"{', '.join(f'{q:.3g}' for q in r['meta_q_max']) or '-'} | {r['episodes']} / {r['env_steps']} | "
                      f"{r['wall_min']:.1f} |")
     return "\n".join(lines)
 

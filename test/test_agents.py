@@ -213,6 +213,10 @@ def test_table_4_7_defaults():
     assert cfg.sub.lr == 1e-4
     assert cfg.update_every == 5
     assert (cfg.sub.seq_len, cfg.meta.seq_len) == (8, 2)  # experiment 3's n^S, n^M
+    # the meta-controller learns on whole episodes, the step limit terminal (docs/training.md,
+    # "Where this differs from the thesis"); the sub-controller and flat agents on the thesis's windows
+    assert (cfg.meta.sampling, cfg.meta.time_limit) == ("whole", "terminal")
+    assert {(c.sampling, c.time_limit) for c in (cfg.sub, cfg.flat)} == {("windows", "bootstrap")}
 
 
 def test_epsilon_greedy_never_takes_the_invalid_choice():
@@ -385,9 +389,10 @@ def _reference_q(net, x):
 @pytest.mark.parametrize("role", ["sub", "meta"])
 def test_the_fast_update_equals_a_straightforward_one(role):
     """One ``Controller.update`` of the full-size hDRQNv2 controllers (hand-written LSTM
-    backward, the last conv as a matrix product, fused Adam) against a straightforward
-    Double DQN loss through ``nn.LSTM`` and ``F.conv2d`` with autograd, on the same sampled
-    batch: the same loss and the same gradient for every parameter (within 1e-5)."""
+    backward, the last conv as a matrix product, fused Adam; the meta-controller on whole
+    episodes) against a straightforward Double DQN loss through ``nn.LSTM`` and ``F.conv2d``
+    with autograd, on the same sampled batch: the same loss and the same gradient for every
+    parameter (within 1e-5)."""
     import copy
 
     from hdrqn_ros.training.episodes import EpisodeBuilder
@@ -420,7 +425,10 @@ def test_the_fast_update_equals_a_straightforward_one(role):
         if batch.next_invalid is not None:
             q_next = q_next.masked_fill(torch.arange(q.shape[-1]) == batch.next_invalid.unsqueeze(-1), float("-inf"))
         value = _reference_q(target, batch.obs)[:, 1:].gather(-1, q_next.argmax(-1, keepdim=True)).squeeze(-1)
-        y = batch.reward + ctrl.cfg.gamma * (1 - batch.terminal) * value
+        terminal = batch.terminal  # the step limit ends the value too (the meta-controller's time_limit)
+        if ctrl.cfg.time_limit == "terminal":
+            terminal = torch.maximum(terminal, batch.episode_end.float())
+        y = batch.reward + ctrl.cfg.gamma * (1 - terminal) * value
     mask = batch.mask.float()
     expected = ((q_taken - y).pow(2) * mask).sum() / mask.sum()
     expected.backward()

@@ -58,6 +58,16 @@ def test_gradient_clipping_and_the_meta_discount_defaults():
     assert cfg.smdp_discount is False  # Algorithm 3's gamma; gamma**k with smdp_discount: true
 
 
+def test_the_meta_controller_learns_on_whole_episodes_except_in_the_thesis_window_studies():
+    """The default (whole episodes, the step limit terminal) everywhere but experiment 1, whose
+    subject is the thesis's n^M windows, and Montezuma, where whole episodes are not measured."""
+    thesis_windows = {"exp1_sequence_length.yaml", "exp4_montezuma.yaml"}
+    for path in sorted(config_dir().glob("*.yaml")):
+        meta = build_config([path]).meta
+        want = ("windows", "bootstrap") if path.name in thesis_windows else ("whole", "terminal")
+        assert (meta.sampling, meta.time_limit) == want, path.name
+
+
 def test_the_montezuma_experiment_counts_phase_1_in_its_100000_episodes():
     cfg = build_config([config_dir() / "exp4_montezuma.yaml"])
     assert (cfg.episodes, cfg.sub_only_episodes) == (100_000, 20_000)

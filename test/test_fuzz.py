@@ -829,7 +829,7 @@ LONG_WORK = ["hdrqn_ros.training.trainer.Trainer", "hdrqn_ros.training.offline.O
              "hdrqn_ros.training.learner.evaluate", "hdrqn_ros.supervisor.Supervisor",
              "hdrqn_ros.nodes.process.run_node"]
 CLI_COMMANDS = [("train",), ("eval",), ("plot",), ("up",), ("bag", "info"), ("bag", "repair"), ("bag", "play"),
-                ("envs",)]
+                ("envs",), ("values",)]
 """The commands fuzzed (with LONG_WORK stubbed): not ``experiment``, which starts processes."""
 PATHS = ["missing", "file.txt", "emptydir", "bag", "bad.yaml", "latin1.yaml", "config.yaml", "emptydir/new",
          "file.txt/below", "", "bag/metadata.yaml", "bag/rec_0.mcap"]

@@ -124,8 +124,11 @@ def test_each_controllers_losses_are_logged_every_few_updates(tmp_path):
     for ctrl in (trainer.agent.sub, trainer.agent.meta):
         rows = {k: v for k, v in losses[ctrl.name].items() if k not in by_index}
         assert rows["updates"].tolist() == list(range(4, ctrl.updates + 1, 4)) and len(rows["updates"]) >= 3
-        assert np.isfinite(np.stack(list(rows.values()))).all() and (rows["grad_norm"] > 0).all()
-        assert (rows["td_loss"] > 0).all() and not np.array_equal(rows["q_taken"], rows["target"])
+        assert np.isfinite(np.stack(list(rows.values()))).all() and (rows["grad_norm"] >= 0).all()
+        # the meta-controller's first few episodes may leave it nothing to learn (a zero loss)
+        some = np.all if ctrl is trainer.agent.sub else np.any
+        assert some(rows["td_loss"] > 0) and some(rows["grad_norm"] > 0)
+        assert not np.array_equal(rows["q_taken"], rows["target"])
         assert np.diff(rows["env_steps"]).min() > 0 and np.diff(rows["episode"]).min() >= 0
         # train.csv: the latest row as the episode ended (empty before the first one)
         for stat in ("td_loss", "q_taken"):

@@ -27,8 +27,10 @@ from hdrqn_ros.training.replay_snapshot import load_replay_snapshot
 
 BUCKETS = 5
 """Segment positions 0 .. 3 one by one, then 4 and later together."""
-CHUNK = 32
+CHUNK = 8
 """Segments run through the network at once."""
+START_BLOCK = 32
+"""Window starts per segment run through the network at once (with CHUNK: at most 256 windows)."""
 
 
 def _taken(q: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
@@ -45,11 +47,16 @@ def _chunk_values(ctrl: Controller, slots: list[int], gamma: float, smdp: bool, 
     action = torch.as_tensor(batch.fields["action"], device=ctrl.device).long()
     b, length = action.shape
     acting = _taken(ctrl.online(obs)[0][:, :-1], action)  # (B, L)
-    # every window start s = 0 .. L-1 of n + 1 inputs, zero-padded past the segment's end
+    # every window start s = 0 .. L-1 of n + 1 inputs, zero-padded past the segment's end, a
+    # block of starts at a time (a window copies its inputs: Montezuma's options are long)
     padded = torch.cat([obs, obs.new_zeros((b, n) + obs.shape[2:])], 1)
-    windows = padded.unfold(1, n + 1, 1)[:, :length]  # (B, L, ..., n + 1)
-    windows = windows.movedim(-1, 2).reshape((b * length, n + 1) + obs.shape[2:])
-    q_windows = torch.cat([ctrl.online(part)[0] for part in windows.split(256)]).view(b, length, n + 1, -1)
+    blocks = []
+    for first in range(0, length, START_BLOCK):
+        starts = min(START_BLOCK, length - first)
+        windows = padded[:, first:first + starts + n].unfold(1, n + 1, 1)  # (B, starts, ..., n + 1)
+        windows = windows.movedim(-1, 2).reshape((b * starts, n + 1) + obs.shape[2:])
+        blocks.append(ctrl.online(windows)[0].view(b, starts, n + 1, -1))
+    q_windows = torch.cat(blocks, 1)  # (B, L, n + 1, A)
     zero = torch.full((n + 1, b, length), float("nan"), device=ctrl.device)
     for p in range(n + 1):  # the decision at t seen at position p of the window begun at t - p
         if p < length:

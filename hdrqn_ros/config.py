@@ -92,6 +92,10 @@ def _flat_defaults() -> ControllerConfig:
                             epsilon=EpsilonSchedule(start=1.0, end=0.1, steps=150_000))
 
 
+BEFORE_SAMPLING = {"sampling": "windows", "time_limit": "bootstrap"}
+"""How every controller learned before ``sampling`` and ``time_limit`` existed (a checkpoint's
+config without them: :meth:`TrainConfig.changes_since` names the switch to today's defaults)."""
+
 MAX_ENVS = 4096
 """Most environments one batch steps (a bigger batch is a typo, not a plan: it would fill memory)."""
 
@@ -148,6 +152,8 @@ class TrainConfig(_Strict):
         ``sub`` and ``meta`` for a flat one)."""
         unused = {"flat"} if ALGO_SPECS[self.algo].hierarchical else {"sub", "meta"}
         changes: list[str] = []
+        saved = {**saved, **{section: {**BEFORE_SAMPLING, **saved[section]} for section in ("sub", "meta", "flat")
+                             if isinstance(saved.get(section), dict)}}
 
         def walk(old: Any, new: Any, key: str) -> None:
             if isinstance(old, dict) and isinstance(new, dict):

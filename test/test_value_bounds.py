@@ -170,3 +170,15 @@ def test_hdrqn_values_sets_acting_q_beside_zero_state_windows_and_returns(tmp_pa
 def test_hdrqn_values_names_a_directory_without_a_run(tmp_path, capsys):
     assert main(["values", str(tmp_path)]) == 2
     assert "holds no checkpoints/last.pt" in capsys.readouterr().err
+
+
+def test_resuming_a_run_begun_before_whole_episodes_names_the_switch():
+    """A checkpoint's config without ``sampling``/``time_limit`` learned on windows with the
+    limit bootstrapped: resumed with today's defaults, the change is named."""
+    saved = build_config([]).model_dump()
+    for section in ("sub", "meta", "flat"):
+        del saved[section]["sampling"], saved[section]["time_limit"]
+    assert build_config([]).changes_since(saved) == ["meta.sampling: 'windows' -> 'whole'",
+                                                     "meta.time_limit: 'bootstrap' -> 'terminal'"]
+    kept = build_config([], meta={"sampling": "windows", "time_limit": "bootstrap"})
+    assert kept.changes_since(saved) == []

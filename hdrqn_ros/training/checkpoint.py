@@ -63,9 +63,12 @@ def load_checkpoint(path: str | Path, map_location: str = "cpu") -> dict:
 
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as exc:  # corrupted, truncated, or not a torch file at all
-        raise CheckpointError(f"{path} is not a readable hdrqn_ros checkpoint ({type(exc).__name__}: "
-                              f"{str(exc).splitlines()[0] if str(exc) else 'no detail'})") from None
+    except Exception as exc:  # corrupted, truncated, not a torch file, or a pickle that runs code
+        # torch's own message is left out: for a pickle it suggests weights_only=False, which
+        # would run whatever the file holds
+        raise CheckpointError(f"{path} is not a readable hdrqn_ros checkpoint: expected the weights-only torch "
+                              f"file that hdrqn train writes (RUN_DIR/checkpoints/last.pt); torch could not load "
+                              f"it ({type(exc).__name__})") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointError(f"{path} is not an hdrqn_ros checkpoint (no '{FORMAT}' marker)")
     if payload.get("version") != VERSION:

@@ -310,7 +310,20 @@ def test_cli_train_eval_plot_round_trip(tmp_path, capsys):
     assert (run / "curves.png").stat().st_size > 10_000
     assert main(["eval", "--checkpoint", str(run / "checkpoints" / "last.pt"), "--episodes", "3"]) == 0
     assert '"episodes": 3' in capsys.readouterr().out
+    assert main(["eval", "--checkpoint", str(run / "checkpoints" / "last.pt"), "--episodes", "6", "--num-envs", "3"]) == 0
+    assert '"episodes": 6' in capsys.readouterr().out
     assert main(["plot", str(run), str(run), "--out", str(tmp_path / "both.png")]) == 0
+
+
+def test_eval_plays_exactly_the_episodes_asked_for_or_says_why_not(capsys):
+    """Each environment plays as many episodes: --num-envs must divide --episodes (exit 2 naming
+    the counts that would), and by default the most environments that do, up to 256, play."""
+    from hdrqn_ros.training.learner import eval_envs
+
+    assert (eval_envs(100), eval_envs(300), eval_envs(512), eval_envs(7, 7)) == (100, 150, 256, 7)
+    assert main(["eval", "--checkpoint", "x.pt", "--episodes", "10", "--num-envs", "8"]) == 2
+    err = capsys.readouterr().err
+    assert "10 episodes do not split evenly over 8 environments" in err and "ask for 16 episodes" in err
 
 
 def test_montezuma_trains_through_the_same_loop(tmp_path):

@@ -54,9 +54,12 @@ def add_eval(sub) -> None:
     source.add_argument("--checkpoint", help="path to a checkpoint (RUN_DIR/checkpoints/last.pt)")
     source.add_argument("--policy", help="an exported policy directory (hdrqn export), acting with onnxruntime: "
                                          "the same episodes as its checkpoint")
-    parser.add_argument("--episodes", type=int, default=100)
-    parser.add_argument("--seed", type=int, default=12345)
-    parser.add_argument("--num-envs", type=int, help="environments played in parallel (default: one per episode)")
+    parser.add_argument("--episodes", type=int, default=100, help="episodes played, exactly (default 100)")
+    parser.add_argument("--seed", type=int, default=12345,
+                        help="seeds the environments (env i: seed + i) and the exploration (default 12345)")
+    parser.add_argument("--num-envs", type=int, help="environments played in parallel, each the same number of "
+                                                     "episodes: it must divide --episodes (default: one per episode, "
+                                                     "at most 256)")
     parser.add_argument("--epsilon", type=float, default=0.0,
                         help="exploration of both controllers (default 0: greedy)")
     parser.add_argument("--meta-epsilon", type=float, metavar="E",
@@ -152,13 +155,17 @@ def cmd_eval(args) -> int:
 
     from hdrqn_ros.config import MAX_ENVS
     from hdrqn_ros.envs.registration import GRID_IDS, make_batch
-    from hdrqn_ros.training.learner import load_trained_agent, play, summarise
+    from hdrqn_ros.training.learner import eval_envs, load_trained_agent, play, summarise
     from hdrqn_ros.training.subgoals import option_table, option_table_markdown
 
     if args.episodes < 1:
         raise UsageError(f"--episodes must be >= 1, got {args.episodes}")
     if args.num_envs is not None and not 1 <= args.num_envs <= MAX_ENVS:
         raise UsageError(f"--num-envs must be in 1..{MAX_ENVS}, got {args.num_envs}")
+    try:
+        num_envs = eval_envs(args.episodes, args.num_envs)
+    except ValueError as exc:
+        raise UsageError(f"--episodes {args.episodes} with --num-envs {args.num_envs}: {exc}") from None
     for flag, value in (("--epsilon", args.epsilon), ("--meta-epsilon", args.meta_epsilon)):
         if value is not None and not 0.0 <= value <= 1.0:  # also NaN
             raise UsageError(f"{flag} must be in [0, 1], got {value}")
@@ -185,11 +192,11 @@ def cmd_eval(args) -> int:
     if args.record:
         from hdrqn_ros.recording.transitions import TransitionRecorder
 
-        sink = TransitionRecorder(args.record, cfg, min(args.num_envs or args.episodes, args.episodes),
+        sink = TransitionRecorder(args.record, cfg, num_envs,
                                   source=f"hdrqn eval --checkpoint {args.checkpoint} --epsilon {args.epsilon}")
     try:
         episodes = play(agent, cfg, args.episodes, args.seed, epsilon=args.epsilon, meta_epsilon=args.meta_epsilon,
-                        sink=sink, num_envs=args.num_envs)
+                        sink=sink, num_envs=num_envs)
     finally:
         if sink is not None:
             sink.close()

@@ -60,17 +60,30 @@ def load_trained_agent(path: str | Path, device: str = "cpu") -> tuple[TrainConf
     return cfg, agent
 
 
+def eval_envs(episodes: int, num_envs: int | None = None) -> int:
+    """How many environments :func:`play` steps for ``episodes`` episodes: ``num_envs``, which
+    must divide ``episodes`` (every environment plays as many; a ValueError says what would),
+    or by default the most that do, at most ``MAX_EVAL_ENVS``."""
+    if num_envs is None:
+        return max(n for n in range(1, min(episodes, MAX_EVAL_ENVS) + 1) if episodes % n == 0)
+    if episodes % num_envs:
+        fits = [n for n in range(1, min(episodes, MAX_EVAL_ENVS) + 1) if episodes % n == 0][-3:]
+        raise ValueError(f"{episodes} episodes do not split evenly over {num_envs} environments (each plays as "
+                         f"many): ask for {-(-episodes // num_envs) * num_envs} episodes, or "
+                         f"{' / '.join(map(str, fits))} environments")
+    return num_envs
+
+
 def play(agent: Agent, cfg: TrainConfig, episodes: int, seed: int, epsilon: float = 0.0,
          meta_epsilon: float | None = None, sink=None, num_envs: int | None = None) -> list[EpisodeStats]:
-    """Play ``episodes`` episodes on ``num_envs`` parallel environments of a fresh batch
-    (default: one per episode, at most ``MAX_EVAL_ENVS``); each environment plays
-    ``ceil(episodes / num_envs)``.
+    """Play exactly ``episodes`` episodes on :func:`eval_envs` parallel environments of a
+    fresh batch, each playing the same number.
     ``epsilon``: the sub-controller's (and a flat agent's) exploration; ``meta_epsilon``:
     the meta-controller's (default ``epsilon``; 1 picks subgoals at random, as phase 1).
     ``sink``: also hand it every step (``write(StepRecord)``), e.g. to record them.
     Returns each episode's statistics (env 0's episodes first)."""
-    n = min(num_envs or min(episodes, MAX_EVAL_ENVS), episodes)
-    quota = -(-episodes // n)
+    n = eval_envs(episodes, num_envs)
+    quota = episodes // n
     batch = make_batch(cfg.env, n, **cfg.env_kwargs)
     rollout = Rollout(batch, agent, seed=seed, meta_state=cfg.meta_state, record_subgoal_images=sink is not None)
     builder = EpisodeBuilder(n, agent.meta is not None)
@@ -400,4 +413,4 @@ class Learner:
         return tqdm(total=total, initial=initial, unit=unit, dynamic_ncols=True, desc=desc)
 
 
-__all__ = ["Learner", "evaluate", "play", "summarise", "build_agent", "load_trained_agent", "EVAL_SEED_OFFSET"]
+__all__ = ["Learner", "evaluate", "eval_envs", "play", "summarise", "build_agent", "load_trained_agent", "EVAL_SEED_OFFSET"]

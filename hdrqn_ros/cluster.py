@@ -54,6 +54,25 @@ class RayUnavailable(ClusterError):
     """ray is not installed."""
 
 
+CONNECT_TIMEOUT_S = 10.0
+"""How long ``--ray ADDRESS`` waits for the cluster's head to accept a connection."""
+
+
+def check_reachable(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
+    """A :class:`ClusterError` naming ``address`` (``HOST:PORT`` or ``ray://HOST:PORT``) when
+    nothing accepts a TCP connection there within ``timeout_s``: ray itself retries for
+    minutes without an error. ``auto`` and an address without a port are left to ray."""
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not port.isdigit() or not host:
+        return
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as exc:
+        raise ClusterError(f"cannot reach the Ray cluster at {address} within {timeout_s:g} s "
+                           f"({type(exc).__name__}: {exc.strerror or exc}): is its head running "
+                           f"(ray start --head) and the port open?") from None
+
+
 class UnsafeArchive(ValueError):
     """A run archive with a member that would land outside its run directory."""
 
@@ -79,6 +98,7 @@ def start_ray(address: str | None = None, num_cpus: int | None = None) -> bool:
     if ray.is_initialized():
         return False
     if address is not None:
+        check_reachable(address)
         ray.init(address=address, logging_level="WARNING")
         return True
     # ray.init(_node_ip_address="127.0.0.1") alone is not loopback: ray resolves a loopback

@@ -280,6 +280,22 @@ def test_ray_flags_and_their_errors():
     assert "--shared-dir" in p.format_help() and "127.0.0.1" in p.format_help()
 
 
+def test_an_unreachable_cluster_address_is_one_exit_2_line_naming_it(tmp_path):
+    """Nothing listens at the address: exit 2 within the connect timeout, naming the address,
+    instead of ray retrying for minutes (a closed port on loopback)."""
+    with socket.socket() as free:
+        free.bind(("127.0.0.1", 0))
+        address = f"127.0.0.1:{free.getsockname()[1]}"
+    run = subprocess.run([sys.executable, "-m", "hdrqn_ros.cli", "experiment", "exp1", "--ray", address, "--episodes",
+                          "5", "--seeds", "0", "--out", str(tmp_path / "x")], capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 2, run.stderr
+    error = [line for line in run.stderr.splitlines() if "error" in line]
+    assert error == [f"hdrqn experiment: error: cannot reach the Ray cluster at {address} within 10 s "
+                     f"(ConnectionRefusedError: Connection refused): is its head running (ray start --head) and the "
+                     f"port open?"]
+
+
 def test_without_ray_the_error_names_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
     with pytest.raises(cluster.RayUnavailable, match=r"pip install 'hdrqn_ros\[cluster\]'") as err:

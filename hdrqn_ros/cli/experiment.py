@@ -49,7 +49,9 @@ def add_plot(sub) -> None:
 
 
 def add_envs(sub) -> None:
-    sub.add_parser("envs", help="list the environment ids and their default options")
+    sub.add_parser("envs", help="list the environment ids and their default options",
+                   description="Lists every registered environment id (gymnasium's hdrqn/... ids) with its "
+                               "default options (view, step limit, ...), which --view and env_kwargs change.")
 
 
 def cmd_experiment(args) -> int:

@@ -49,7 +49,11 @@ def add_train(sub) -> None:
 
 def add_eval(sub) -> None:
     parser = sub.add_parser("eval", help="run greedy evaluation episodes of a checkpoint or an exported policy "
-                                         "(and record them)")
+                                         "(and record them)",
+                            description="Plays --episodes episodes of a trained agent (a checkpoint, or an exported "
+                                        "ONNX policy acting without torch) on held-out environments and prints "
+                                        "their mean success, steps and rewards as JSON; --record writes them as an "
+                                        "MCAP bag, --subgoals adds the meta-controller's options.")
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--checkpoint", help="path to a checkpoint (RUN_DIR/checkpoints/last.pt)")
     source.add_argument("--policy", help="an exported policy directory (hdrqn export), acting with onnxruntime: "

@@ -285,3 +285,19 @@ def test_parameters_given_in_python_win_over_ros_args(domain, bags):
             p.close()
             p.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+def test_topics_are_chosen_as_recorded_or_by_their_name_in_every_group():
+    """``--topics`` takes a recorded name, or a group's topic name without its namespace; a
+    name that selects nothing is one error naming it and the closest recorded topics."""
+    from hdrqn_ros.recording.bag import BagError, select_topics
+
+    recorded = {"/group0/observation", "/group1/observation", "/group0/env_step", "/learner/status", "/clock"}
+    assert select_topics(["/group0/observation"], recorded, "b") == {"/group0/observation"}
+    assert select_topics(["observation", "/clock"], recorded, "b") == {"/group0/observation", "/group1/observation",
+                                                                       "/clock"}
+    assert select_topics(["status"], recorded, "b") == {"/learner/status"}
+    with pytest.raises(BagError) as error:
+        select_topics(["/observatio"], recorded, "bags/run1")
+    assert str(error.value) == ("topic /observatio is not in bags/run1 (5 topics recorded; closest: "
+                                "/group0/observation, /group1/observation; hdrqn bag info lists them)")

@@ -34,7 +34,7 @@ from hdrqn_ros.nodes.parameters import NodeConfigError, Param, declare_parameter
 from hdrqn_ros.nodes.process import run_node
 from hdrqn_ros.nodes.qos import DEFAULT_QOS, keep_last
 from hdrqn_ros.nodes.ros_messages import MissingRosPackage, from_cdr, interface_class
-from hdrqn_ros.recording.bag import BagError, TopicInfo, bag_summary, bag_topics, read_messages
+from hdrqn_ros.recording.bag import BagError, TopicInfo, bag_summary, bag_topics, read_messages, select_topics
 
 
 PARAMETERS = {
@@ -136,12 +136,9 @@ class PlayerNode(Node):
         # the bags' time span (all topics), for progress reports
         self.start_ns = min((s for s, _ in spans), default=None)
         self.end_ns = max((e for _, e in spans), default=None)
-        wanted = {t if t.startswith("/") else "/" + t for t in params["topics"] if t}
-        if unknown := sorted(wanted - infos.keys()):
-            raise NodeConfigError(f"topics {unknown} are not in {', '.join(self.bags)}; "
-                                  f"recorded topics: {sorted(infos)}")
+        wanted = [t for t in params["topics"] if t]
         bag_clock = infos.get(CLOCK_TOPIC)
-        selected = {t for t in infos if not wanted or t in wanted}
+        selected = select_topics(wanted, set(infos), ", ".join(self.bags)) if wanted else set(infos)
         if params["clock"] and bag_clock is not None:
             if bag_clock.type_name != CLOCK_TYPE:
                 raise BagError(f"{first_bag[CLOCK_TOPIC]}: topic {CLOCK_TOPIC} is {bag_clock.type_name}, not "

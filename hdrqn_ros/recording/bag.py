@@ -13,9 +13,9 @@ from __future__ import annotations
 
 from hdrqn_ros.recording.bag_format import MAGIC, TYPESTORE, BagError, _McapFile  # noqa: F401  (_McapFile: tests)
 from hdrqn_ros.recording.bag_reader import (TopicInfo, bag_custom_data, bag_summary, bag_topics, open_bag,
-                                            read_messages)
+                                            read_messages, select_topics)
 from hdrqn_ros.recording.bag_repair import RepairReport, repair_bag
 from hdrqn_ros.recording.bag_writer import BagWriter
 
 __all__ = ["TYPESTORE", "MAGIC", "BagError", "BagWriter", "open_bag", "read_messages", "bag_summary",
-           "bag_custom_data", "bag_topics", "TopicInfo", "repair_bag", "RepairReport"]
+           "bag_custom_data", "bag_topics", "select_topics", "TopicInfo", "repair_bag", "RepairReport"]

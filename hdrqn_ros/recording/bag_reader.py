@@ -170,3 +170,28 @@ def bag_topics(path) -> dict[str, TopicInfo]:
                 all(d == QosDurability.TRANSIENT_LOCAL for d in dur) if dur else None,
                 max(depths) if depths else None)
     return out
+
+
+NEAR_MATCHES = 3
+"""How many recorded topics an unknown ``--topics`` name suggests."""
+
+
+def select_topics(wanted: list[str], recorded: set[str], where: str) -> set[str]:
+    """The recorded topics that ``wanted`` names (a leading ``/`` optional): a name as
+    recorded, or the name of a group's topic without its namespace (``/observation`` selects
+    ``/group0/observation``, ``/group1/observation``, ... of a multi-group recording). Raises
+    :class:`BagError` for a name that selects nothing, naming it, ``where`` and the few
+    recorded topics closest to it."""
+    selected: set[str] = set()
+    for name in wanted:
+        topic = name if name.startswith("/") else "/" + name
+        found = {topic} & recorded or {t for t in recorded if t.endswith(topic) and t[: -len(topic)].count("/") == 1}
+        if not found:
+            import difflib
+
+            close = difflib.get_close_matches(topic, sorted(recorded), n=NEAR_MATCHES, cutoff=0.4)
+            hint = f"; closest: {', '.join(sorted(close))}" if close else ""
+            raise BagError(f"topic {topic} is not in {where} ({len(recorded)} topics recorded{hint}; "
+                           f"hdrqn bag info lists them)")
+        selected |= found
+    return selected

@@ -298,6 +298,14 @@ def test_cli_misuse_exits_2(tmp_path, capsys):
     assert main(["eval", "--checkpoint", str(tmp_path / "missing.pt")]) == 2
     assert main(["plot", str(tmp_path), "--out", str(tmp_path / "x.png")]) == 2
     assert main(["train", "--view", "7x7", "--out", str(tmp_path / "r2")]) == 2
+    capsys.readouterr()
+    for argv, usage in ((["eval", "--checkpoint", "x.pt", "--bogus"], "hdrqn eval"),
+                        (["bag", "info", "bags/x", "--bogus"], "hdrqn bag info")):
+        with pytest.raises(SystemExit) as exc:  # an unknown flag: the subcommand's own usage and error
+            main(argv)
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and err.startswith(f"usage: {usage} ") and \
+            err.endswith(f"{usage}: error: unrecognized arguments: --bogus\n")
 
 
 def test_cli_train_eval_plot_round_trip(tmp_path, capsys):

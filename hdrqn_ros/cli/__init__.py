@@ -63,8 +63,21 @@ def _interrupt(signum, frame):
     raise KeyboardInterrupt(f"signal {signum}")
 
 
+def _parse(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
+    """``parser.parse_args(argv)``, but an unrecognised argument is reported by the (sub)command's
+    own parser, with its usage line (``hdrqn eval: error: ...``), not the top-level one."""
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        command = parser
+        while (chosen := next((a for a in command._actions if isinstance(a, argparse._SubParsersAction)), None)) \
+                and getattr(args, chosen.dest, None) in chosen.choices:
+            command = chosen.choices[getattr(args, chosen.dest)]
+        command.error(f"unrecognized arguments: {' '.join(extra)}")
+    return args
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = _parse(build_parser(), argv)
     # SIGTERM (kill, a job scheduler, `hdrqn experiment` stopping its runs) stops like Ctrl-C:
     # training saves its checkpoint first. SIGINT alone does not reach background jobs.
     main_thread = threading.current_thread() is threading.main_thread()

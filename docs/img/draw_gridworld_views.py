@@ -1,7 +1,8 @@
-"""Draw docs/img/gridworld_views.png: one four-rooms state seen through every view.
+"""Draw one four-rooms state seen through every view (docs/img/gridworld_views.png).
 
-    python docs/img/draw_gridworld_views.py
+    python docs/img/draw_gridworld_views.py [OUT.png]   # default runs/figures/gridworld_views.png
 """
+import sys
 from pathlib import Path
 
 import matplotlib
@@ -13,7 +14,7 @@ import matplotlib.pyplot as plt
 import hdrqn_ros  # noqa: F401  (registers the ids)
 
 
-def main() -> None:
+def main(out: str = "runs/figures/gridworld_views.png") -> None:
     panels = []
     for view in (3, 5, 11, "full"):
         env = gym.make("hdrqn/FourRooms-3Goals-v0", view=view, render_mode="rgb_array").unwrapped
@@ -28,11 +29,11 @@ def main() -> None:
         ax.imshow(img, interpolation="nearest")
         ax.set_title(title, fontsize=8)
         ax.axis("off")
-    out = Path(__file__).with_name("gridworld_views.png")
     fig.tight_layout()
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=90)
     print(out)
 
 
 if __name__ == "__main__":
-    main()
+    main(*sys.argv[1:])

@@ -1,6 +1,6 @@
 """Draw the 7 subgoal boxes of Montezuma's Revenge on the first screen.
 
-    python docs/img/draw_montezuma_subgoals.py [out.png]
+    python docs/img/draw_montezuma_subgoals.py [OUT.png]   # default runs/figures/montezuma_subgoals.png
 
 Each rectangle is the set of screen pixels where the agent's *centre* lies when its RAM
 position is inside the subgoal's box (``hdrqn_ros.envs.montezuma.SUBGOAL_BOXES``).
@@ -19,7 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from hdrqn_ros.envs.montezuma import SUBGOAL_NAMES, MontezumaBatch, subgoal_box_pixels  # noqa: E402
 
 
-def main(out="docs/img/montezuma_subgoals.png"):
+def main(out="runs/figures/montezuma_subgoals.png"):
     batch = MontezumaBatch(num_envs=1)
     batch.reset(seed=0)
     frame = batch.frames[0]
@@ -36,6 +36,7 @@ def main(out="docs/img/montezuma_subgoals.png"):
     ax.tick_params(labelsize=6)
     ax.set_title("Montezuma's Revenge, first room: subgoal boxes (agent centre)", fontsize=7)
     fig.tight_layout()
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out)
     print(out)
 

@@ -22,7 +22,7 @@ import torch
 
 from hdrqn_ros.agents.controller import Controller
 from hdrqn_ros.training.checkpoint import CheckpointError, load_checkpoint
-from hdrqn_ros.training.learner import build_agent
+from hdrqn_ros.training.learner import load_trained_agent
 from hdrqn_ros.training.replay_snapshot import load_replay_snapshot
 
 BUCKETS = 5
@@ -39,10 +39,10 @@ def _taken(q: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
 
 
 @torch.no_grad()
-def _chunk_values(ctrl: Controller, slots: list[int], gamma: float, smdp: bool, n: int):
+def _chunk_values(ctrl: Controller, slots: list[int], n: int):
     """Per valid step of the whole segments of replay ``slots``: (position t, return G_t,
     acting Q, (n + 1, steps) zero-state window Q at positions 0 .. n, NaN where t < p)."""
-    batch = ctrl.replay.whole_segments(slots, gamma=gamma, smdp_discount=smdp)
+    batch = ctrl.replay.whole_segments(slots, gamma=ctrl.cfg.gamma, smdp_discount=ctrl.smdp_discount)
     obs = torch.as_tensor(ctrl.build_input(batch), device=ctrl.device)
     action = torch.as_tensor(batch.fields["action"], device=ctrl.device).long()
     b, length = action.shape
@@ -67,13 +67,13 @@ def _chunk_values(ctrl: Controller, slots: list[int], gamma: float, smdp: bool, 
     return position[valid], returns[valid], acting[valid], zero[:, valid]
 
 
-def audit_controller(ctrl: Controller, gamma: float, smdp: bool = False, episodes: int = 200) -> dict:
+def audit_controller(ctrl: Controller, episodes: int = 200) -> dict:
     """The table of one recurrent controller over the newest ``episodes`` of its replay:
     ``rows`` by segment position (``count``, ``return``, ``q_acting``, ``q_window`` per window
     position) and ``gap``: mean |acting Q - zero-state Q| per window position."""
     n = ctrl.cfg.seq_len
     slots = list(range(max(0, len(ctrl.replay) - episodes), len(ctrl.replay)))
-    parts = [_chunk_values(ctrl, slots[i:i + CHUNK], gamma, smdp, n) for i in range(0, len(slots), CHUNK)]
+    parts = [_chunk_values(ctrl, slots[i:i + CHUNK], n) for i in range(0, len(slots), CHUNK)]
     position, returns, acting = (torch.cat([p[k] for p in parts]).cpu().numpy() for k in range(3))
     zero = torch.cat([p[3] for p in parts], 1).cpu().numpy()  # (n + 1, steps)
     bucket = np.minimum(position, BUCKETS - 1)
@@ -95,28 +95,19 @@ def audit_run(run_dir: str | Path, episodes: int = 200) -> list[dict]:
     """:func:`audit_controller` for each recurrent controller of the run in ``run_dir``, on
     the replay its last checkpoint saved. Raises :class:`CheckpointError` for a run without
     a checkpoint or replay snapshot."""
-    from hdrqn_ros.config import TrainConfig
-
     path = Path(run_dir) / "checkpoints" / "last.pt"
     if not path.is_file():
         raise CheckpointError(f"{run_dir} holds no checkpoints/last.pt (is it a run directory of hdrqn train?)")
     payload = load_checkpoint(path)
-    cfg = TrainConfig.model_validate({**payload["config"], "device": "cpu"})
     snapshot = payload["progress"].get("replay")
     if not snapshot:
         raise CheckpointError(f"{path} saved no replay (the run had save_replay false): nothing to audit")
-    agent = build_agent(cfg)
-    agent.load_state_dict(payload["agent"])
-    replays = {"sub": agent.sub.replay, **({"meta": agent.meta.replay} if agent.meta is not None else {})}
+    cfg, agent = load_trained_agent(path)
+    replays = {c.name: c.replay for c in agent.controllers}
     load_replay_snapshot(path.parent / snapshot["file"], replays, snapshot,
                          {"algo": cfg.algo, "env": cfg.env, "env_kwargs": cfg.env_kwargs}, written_with=payload["config"])
-    out = []
-    for ctrl in agent.controllers:
-        if ctrl.recurrent:
-            smdp = ctrl is agent.meta and cfg.smdp_discount
-            out.append({**audit_controller(ctrl, ctrl.cfg.gamma, smdp, episodes),
-                        "run_episodes": payload["progress"]["episodes"]})
-    return out
+    return [{**audit_controller(ctrl, episodes), "run_episodes": payload["progress"]["episodes"]}
+            for ctrl in agent.controllers if ctrl.recurrent]
 
 
 def audit_markdown(table: dict) -> str:
